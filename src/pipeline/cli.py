@@ -1,0 +1,48 @@
+"""The ``gcgs`` command. Each subcommand lives in its own module, imported on use so
+that ``gcgs --help`` stays fast; a module provides ``add_arguments(parser)`` and
+``run(args) -> int``."""
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+# name -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {
+    "params": ("pipeline.stages.params", "compose conf/ into params.yaml (or check it)"),
+    "prepare": ("pipeline.stages.prepare", "load, check and resize a DTU-layout scan for training"),
+    "synth": ("pipeline.stages.synth", "render a synthetic scene with exact ground truth"),
+    "evaluate": ("pipeline.stages.evaluate", "DTU Chamfer distance of a mesh (mm)"),
+    "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
+}
+
+
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="gcgs", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module, help_text) in COMMANDS.items():
+        p = sub.add_parser(name, help=help_text, description=help_text)
+        if name == only:
+            importlib.import_module(module).add_arguments(p)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    name = argv[0] if argv and argv[0] in COMMANDS else None
+    parser = build_parser(only=name)
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 2
+    module = importlib.import_module(COMMANDS[args.command][0])
+    try:
+        return int(module.run(args) or 0)
+    except (ValueError, FileNotFoundError, OSError) as exc:
+        # Input errors (SceneError, CameraError ...) name the file and the problem.
+        print(f"gcgs {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""Typed configs mirroring ``conf/`` and the composed ``params.yaml``.
+
+``conf/`` is the source of truth (Hydra); ``params.yaml`` is its composition, committed
+because ``dvc repro`` reads params.yaml without composing. :func:`compose_params`
+recomposes ``conf/`` and a test checks that the two agree.
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+CONF_DIR = REPO_ROOT / "conf"
+PARAMS_PATH = REPO_ROOT / "params.yaml"
+
+T = TypeVar("T")
+
+
+@dataclass
+class DataConfig:
+    raw_root: str = "data/raw/dtu"
+    eval_root: str | None = None
+    views: list[int] = field(default_factory=lambda: [23, 24, 33])
+    width: int = 800
+    height: int = 600
+
+
+@dataclass
+class SynthConfig:
+    scenes: list[str] = field(default_factory=list)
+    seed: int = 0
+    width: int = 800
+    height: int = 600
+    camera_source: str = "data/raw/dtu/scan24"
+
+
+@dataclass
+class EvaluateConfig:
+    cull_views: str = "input"
+    mask_dilation_px: float = 24.0
+    sample_spacing_mm: float = 0.2
+    downsample_radius_mm: float = 0.2
+    max_dist_mm: float = 20.0
+    patch_mm: float = 60.0
+
+    def __post_init__(self) -> None:
+        if self.cull_views not in ("input", "all", "none"):
+            raise ValueError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
+
+
+def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
+    """Build a dataclass from a mapping, rejecting unknown keys (typos fail loudly)."""
+    data = dict(data or {})
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ValueError(f"unknown key(s) {unknown} in config section {where or cls.__name__}")
+    return cls(**data)
+
+
+def load_params(path: str | Path = PARAMS_PATH) -> dict[str, Any]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: params file not found")
+    with open(path) as fh:
+        return yaml.safe_load(fh) or {}
+
+
+def section(cls: type[T], key: str, params: dict[str, Any] | None = None) -> T:
+    """Typed config for one top-level key of params.yaml."""
+    params = load_params() if params is None else params
+    return from_dict(cls, params.get(key), where=key)
+
+
+def compose_params(overrides: list[str] | None = None) -> dict[str, Any]:
+    """Compose ``conf/config.yaml`` with Hydra's compose API."""
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=overrides or [])
+    return OmegaConf.to_container(cfg, resolve=True)
+
+
+def dump_params(params: dict[str, Any]) -> str:
+    header = "# Generated from conf/ by `gcgs params --write`; do not edit by hand.\n"
+    return header + yaml.safe_dump(params, sort_keys=False, default_flow_style=False)

@@ -1,0 +1,303 @@
+"""Reader and writer for the DTU NeuS/IDR layout.
+
+Layout of a scan directory::
+
+    image/ or images/    000000.png ...   RGB views
+    mask/                000.png ...      object masks (optional)
+    cameras_sphere.npz or cameras.npz     world_mat_i (DTU projection, world mm -> pixels),
+                                          scale_mat_i (unit sphere -> world mm)
+    scene.json                            optional metadata written by this package
+
+Views are matched to cameras by the number in the file name (``000023.png`` is view 23,
+as in the full 49-view scans where this equals the sorted index). A scan directory may
+hold cameras (and masks) for more views than it has images -- the bundled data does,
+so held-out views can be used for mask culling -- but a full scan whose images are
+numbered 0..N-1 must have exactly N cameras.
+"""
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipeline import geometry
+from pipeline.data.scene import Scene, SceneError
+
+IMAGE_DIRS = ("image", "images")
+CAMERA_FILES = ("cameras_sphere.npz", "cameras.npz")
+IMAGE_EXTS = (".png", ".jpg", ".jpeg")
+DEFAULT_VIEWS = (23, 24, 33)
+
+
+@dataclass
+class DTUCameras:
+    """All cameras of a scan, at the resolution of the stored images."""
+
+    K: dict[int, np.ndarray]  # view id -> 3x3 intrinsics
+    world_to_cam: dict[int, np.ndarray]  # view id -> 4x4 world(mm) -> camera
+    norm_to_world: np.ndarray  # 4x4 scale_mat
+    path: Path
+
+    @property
+    def ids(self) -> list[int]:
+        return sorted(self.K)
+
+
+def _numbered_files(folder: Path, exts=IMAGE_EXTS) -> dict[int, Path]:
+    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts)
+    out: dict[int, Path] = {}
+    for idx, p in enumerate(files):
+        m = re.fullmatch(r"(\d+)", p.stem)
+        key = int(m.group(1)) if m else idx
+        if key in out:
+            raise SceneError(f"{p}: two files in {folder} are numbered {key}")
+        out[key] = p
+    if files and not all(re.fullmatch(r"\d+", p.stem) for p in files):
+        # Non-numeric names: fall back to the sorted index, as NeuS does.
+        out = {i: p for i, p in enumerate(files)}
+    return out
+
+
+def find_image_dir(root: Path) -> Path:
+    for name in IMAGE_DIRS:
+        if (root / name).is_dir():
+            return root / name
+    raise SceneError(f"{root}: no image directory (expected one of {', '.join(IMAGE_DIRS)}/)")
+
+
+def find_camera_file(root: Path) -> Path:
+    for name in CAMERA_FILES:
+        if (root / name).is_file():
+            return root / name
+    raise SceneError(f"{root}: no camera file (expected {' or '.join(CAMERA_FILES)})")
+
+
+def read_image(path: Path) -> np.ndarray:
+    """RGB float32 in [0, 1]; a clear error for unreadable files."""
+    if not path.is_file():
+        raise SceneError(f"{path}: file not found")
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None or img.size == 0:
+        raise SceneError(f"{path}: not a readable image (corrupt or unsupported format)")
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+
+
+def read_mask(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise SceneError(f"{path}: file not found")
+    m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if m is None or m.size == 0:
+        raise SceneError(f"{path}: not a readable mask image (corrupt or unsupported format)")
+    return m > 127
+
+
+def load_cameras(root: str | Path) -> DTUCameras:
+    """Read every ``world_mat_i``/``scale_mat_i`` pair of a scan and decompose it."""
+    root = Path(root)
+    path = find_camera_file(root)
+    try:
+        data = np.load(path)
+        files = list(data.files)
+    except Exception as exc:  # zipfile/pickle errors vary; name the file.
+        raise SceneError(f"{path}: cannot read camera file ({exc})") from exc
+    ids = sorted(int(m.group(1)) for k in files if (m := re.fullmatch(r"world_mat_(\d+)", k)))
+    if not ids:
+        raise SceneError(f"{path}: no world_mat_i entries")
+    K, w2c = {}, {}
+    scale = None
+    for i in ids:
+        P = np.asarray(data[f"world_mat_{i}"], dtype=np.float64)
+        try:
+            K[i], w2c[i] = geometry.decompose_projection(P)
+        except geometry.CameraError as exc:
+            raise SceneError(f"{path}: world_mat_{i}: {exc}") from exc
+        key = f"scale_mat_{i}"
+        if key not in files:
+            raise SceneError(f"{path}: missing {key}")
+        S = np.asarray(data[key], dtype=np.float64)
+        if S.shape != (4, 4) or not np.all(np.isfinite(S)):
+            raise SceneError(f"{path}: {key} must be a finite 4x4 matrix, got shape {S.shape}")
+        if abs(np.linalg.det(S)) < 1e-12:
+            raise SceneError(f"{path}: {key} is singular")
+        if scale is None:
+            scale = S
+        elif not np.allclose(S, scale, rtol=1e-5, atol=1e-6):
+            raise SceneError(f"{path}: {key} differs from scale_mat_{ids[0]}; one normalisation per scan is required")
+    return DTUCameras(K=K, world_to_cam=w2c, norm_to_world=scale, path=path)
+
+
+def read_meta(root: Path) -> dict:
+    p = root / "scene.json"
+    if not p.is_file():
+        return {}
+    try:
+        return json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise SceneError(f"{p}: invalid JSON ({exc})") from exc
+
+
+def load_scene(
+    root: str | Path,
+    view_ids: list[int] | tuple[int, ...] | None = DEFAULT_VIEWS,
+    resolution: tuple[int, int] | None = None,
+    with_masks: bool = True,
+    name: str | None = None,
+) -> Scene:
+    """Load a DTU-layout scan.
+
+    Args:
+        root: scan directory.
+        view_ids: views to load (``None``: every view with an image).
+        resolution: ``(width, height)`` to resize to; ``None`` keeps the stored size.
+            Intrinsics are scaled with the integer-pixel-centre convention.
+        with_masks: read ``mask/`` when present (an absent folder gives ``masks=None``).
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise SceneError(f"{root}: scene directory not found")
+    image_dir = find_image_dir(root)
+    image_files = _numbered_files(image_dir)
+    if not image_files:
+        raise SceneError(f"{image_dir}: no images ({'/'.join(IMAGE_EXTS)})")
+    cams = load_cameras(root)
+    if sorted(image_files) == list(range(len(image_files))) and len(cams.ids) != len(image_files):
+        raise SceneError(
+            f"{cams.path}: camera count ({len(cams.ids)}) does not match image count "
+            f"({len(image_files)}) in {image_dir}"
+        )
+    missing = [i for i in image_files if i not in cams.K]
+    if missing:
+        raise SceneError(f"{cams.path}: no world_mat for image(s) {missing[:5]} in {image_dir}")
+    ids = sorted(image_files) if view_ids is None else [int(v) for v in view_ids]
+    for v in ids:
+        if v not in image_files:
+            raise SceneError(f"{image_dir}: view {v} requested but no such image (have {sorted(image_files)[:8]}...)")
+
+    mask_dir = root / "mask"
+    mask_files = _numbered_files(mask_dir) if (with_masks and mask_dir.is_dir()) else None
+
+    images, masks, Ks, w2cs = [], [], [], []
+    size = None
+    for v in ids:
+        img = read_image(image_files[v])
+        h, w = img.shape[:2]
+        if size is None:
+            size = (w, h)
+        elif (w, h) != size:
+            raise SceneError(f"{image_files[v]}: size {w}x{h} differs from the other views ({size[0]}x{size[1]})")
+        K = cams.K[v]
+        if mask_files is not None:
+            if v not in mask_files:
+                raise SceneError(f"{mask_dir}: no mask for view {v}")
+            m = read_mask(mask_files[v])
+            if m.shape != (h, w):
+                raise SceneError(f"{mask_files[v]}: mask size {m.shape[1]}x{m.shape[0]} differs from image size {w}x{h}")
+            if not m.any():
+                raise SceneError(f"{mask_files[v]}: mask is empty (no foreground pixel)")
+        if resolution is not None and tuple(resolution) != (w, h):
+            W, H = int(resolution[0]), int(resolution[1])
+            if W <= 0 or H <= 0:
+                raise SceneError(f"invalid resolution {resolution}")
+            K = geometry.scale_intrinsics(K, W / w, H / h)
+            interp = cv2.INTER_AREA if W < w else cv2.INTER_LINEAR
+            img = cv2.resize(img, (W, H), interpolation=interp)
+            if mask_files is not None:
+                m = cv2.resize(m.astype(np.float32), (W, H), interpolation=interp) > 0.5
+        images.append(img)
+        Ks.append(K)
+        w2cs.append(cams.world_to_cam[v])
+        if mask_files is not None:
+            masks.append(m)
+
+    meta = read_meta(root)
+    return Scene(
+        name=name or meta.get("name") or root.name,
+        images=np.stack(images).astype(np.float32),
+        masks=np.stack(masks) if mask_files is not None else None,
+        K=np.stack(Ks),
+        world_to_cam=np.stack(w2cs),
+        norm_to_world=cams.norm_to_world,
+        view_ids=ids,
+        source=root,
+        scan_id=meta.get("scan_id"),
+        meta=meta,
+    )
+
+
+def _write_png(path: Path, rgb_or_gray: np.ndarray) -> None:
+    arr = rgb_or_gray
+    if arr.dtype != np.uint8:
+        arr = np.clip(np.round(arr * 255.0), 0, 255).astype(np.uint8)
+    if arr.ndim == 3:
+        arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
+    if not cv2.imwrite(str(path), arr):
+        raise OSError(f"{path}: could not write image")
+
+
+def write_scene(
+    out_dir: str | Path,
+    images: dict[int, np.ndarray],
+    K: dict[int, np.ndarray],
+    world_to_cam: dict[int, np.ndarray],
+    norm_to_world: np.ndarray,
+    masks: dict[int, np.ndarray] | None = None,
+    meta: dict | None = None,
+    extra: dict[str, Path] | None = None,
+) -> Path:
+    """Write a scan in the DTU layout, atomically (a temp dir renamed into place).
+
+    ``images``/``masks`` map view id to an RGB float/uint8 image or a bool mask.
+    Cameras may cover more views than ``images`` (held-out views). ``extra`` maps a
+    relative path inside the scan to a file or folder to move in before the rename.
+    """
+    out_dir = Path(out_dir)
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        (tmp / "image").mkdir()
+        for v, img in images.items():
+            _write_png(tmp / "image" / f"{v:06d}.png", img)
+        if masks:
+            (tmp / "mask").mkdir()
+            for v, m in masks.items():
+                _write_png(tmp / "mask" / f"{v:03d}.png", np.asarray(m, dtype=np.uint8) * 255)
+        cams = {}
+        for v in sorted(K):
+            cams[f"world_mat_{v}"] = geometry.compose_projection(K[v], world_to_cam[v])
+            cams[f"scale_mat_{v}"] = np.asarray(norm_to_world, dtype=np.float64)
+        np.savez(tmp / "cameras_sphere.npz", **cams)
+        if meta is not None:
+            (tmp / "scene.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
+        for rel, src in (extra or {}).items():
+            dst = tmp / rel
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            shutil.move(str(src), str(dst))
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def load_masks(root: str | Path, view_ids: list[int] | None = None) -> dict[int, np.ndarray]:
+    """Masks of a scan by view id (all of them by default), at their stored size."""
+    mask_dir = Path(root) / "mask"
+    if not mask_dir.is_dir():
+        raise SceneError(f"{root}: no mask/ directory")
+    files = _numbered_files(mask_dir)
+    ids = sorted(files) if view_ids is None else list(view_ids)
+    out = {}
+    for v in ids:
+        if v not in files:
+            raise SceneError(f"{mask_dir}: no mask for view {v}")
+        out[v] = read_mask(files[v])
+    return out

@@ -1,0 +1,88 @@
+"""The scene model: posed images of one object, with units and frames explicit."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline import geometry
+
+
+class SceneError(ValueError):
+    """Bad scene input. The message names the file and the problem."""
+
+
+@dataclass
+class Scene:
+    """Posed views of one object.
+
+    Attributes:
+        name: scan name (``scan24``, ``synth_plate`` ...).
+        images: ``(N, H, W, 3)`` float32 RGB in [0, 1].
+        masks: ``(N, H, W)`` bool object masks, or ``None``.
+        K: ``(N, 3, 3)`` intrinsics at this image size (integer pixel centres).
+        world_to_cam: ``(N, 4, 4)`` rigid world(mm) -> camera transforms (OpenCV axes).
+        norm_to_world: ``(4, 4)`` similarity mapping the normalised unit sphere to world mm.
+        view_ids: index of each view in its source scan (DTU: 0..48).
+        source: directory the scene was read from.
+        scan_id: DTU scan number (synthetic scenes use ids >= 1000), if known.
+    """
+
+    name: str
+    images: np.ndarray
+    masks: np.ndarray | None
+    K: np.ndarray
+    world_to_cam: np.ndarray
+    norm_to_world: np.ndarray
+    view_ids: list[int]
+    source: Path | None = None
+    scan_id: int | None = None
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        n = len(self.view_ids)
+        if self.images.ndim != 4 or self.images.shape[0] != n or self.images.shape[-1] != 3:
+            raise SceneError(f"{self.name}: images must be (N={n}, H, W, 3), got {self.images.shape}")
+        if self.K.shape != (n, 3, 3) or self.world_to_cam.shape != (n, 4, 4):
+            raise SceneError(
+                f"{self.name}: expected K (N,3,3) and world_to_cam (N,4,4) for N={n} views, "
+                f"got {self.K.shape} and {self.world_to_cam.shape}"
+            )
+        if self.masks is not None and self.masks.shape != self.images.shape[:3]:
+            raise SceneError(f"{self.name}: masks {self.masks.shape} do not match images {self.images.shape[:3]}")
+
+    @property
+    def num_views(self) -> int:
+        return len(self.view_ids)
+
+    @property
+    def height(self) -> int:
+        return int(self.images.shape[1])
+
+    @property
+    def width(self) -> int:
+        return int(self.images.shape[2])
+
+    @property
+    def norm_scale_mm(self) -> float:
+        """Radius of the normalised unit sphere in mm (``scale_mat[0, 0]``)."""
+        return float(self.norm_to_world[0, 0])
+
+    def camera_centers_world_mm(self) -> np.ndarray:
+        """``(N, 3)`` camera centres in the world frame (mm)."""
+        return np.stack([geometry.camera_center(T) for T in self.world_to_cam])
+
+    def world_to_cam_normalised(self) -> np.ndarray:
+        """``(N, 4, 4)`` rigid transforms from the normalised frame to a camera frame in
+        normalised units (camera-frame lengths divided by :attr:`norm_scale_mm`)."""
+        S = self.norm_to_world
+        s = self.norm_scale_mm
+        out = np.einsum("nij,jk->nik", self.world_to_cam, S)
+        out[:, :3, :] /= s
+        out[:, 3] = [0.0, 0.0, 0.0, 1.0]
+        return out
+
+    def projections_world(self) -> np.ndarray:
+        """``(N, 4, 4)`` DTU-style projections ``K [R | t]`` (world mm -> pixels)."""
+        return np.stack([geometry.compose_projection(k, T) for k, T in zip(self.K, self.world_to_cam)])
