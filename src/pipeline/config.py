@@ -22,8 +22,6 @@ T = TypeVar("T")
 
 @dataclass
 class DataConfig:
-    raw_root: str = "data/raw/dtu"
-    eval_root: str | None = None
     views: list[int] = field(default_factory=lambda: [23, 24, 33])
     width: int = 800
     height: int = 600
@@ -50,6 +48,26 @@ class EvaluateConfig:
     def __post_init__(self) -> None:
         if self.cull_views not in ("input", "all", "none"):
             raise ValueError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
+
+
+@dataclass
+class LossConfig:
+    """Loss weights (GCGS paper: lambda_gcf=2, lambda_nor=0.25, lambda_d=10000)."""
+
+    lambda_dssim: float = 0.2
+    lambda_gcf: float = 2.0
+    lambda_nor: float = 0.25
+    lambda_nc: float = 1.0
+    lambda_ngc: float = 1.0
+    lambda_d: float = 10000.0
+
+
+@dataclass
+class SceneEntry:
+    """One entry of ``scenes`` in params.yaml."""
+
+    src: str
+    gt: str | None = None
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
