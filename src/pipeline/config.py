@@ -70,6 +70,15 @@ class SceneEntry:
     gt: str | None = None
 
 
+# Top-level params.yaml sections and their typed configs (``scenes`` maps names to entries).
+SECTIONS: dict[str, type] = {
+    "data": DataConfig,
+    "synth": SynthConfig,
+    "evaluate": EvaluateConfig,
+    "loss": LossConfig,
+}
+
+
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     """Build a dataclass from a mapping, rejecting unknown keys (typos fail loudly)."""
     data = dict(data or {})

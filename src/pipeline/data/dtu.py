@@ -209,7 +209,7 @@ def load_scene(
             interp = cv2.INTER_AREA if W < w else cv2.INTER_LINEAR
             img = cv2.resize(img, (W, H), interpolation=interp)
             if mask_files is not None:
-                m = cv2.resize(m.astype(np.float32), (W, H), interpolation=interp) > 0.5
+                m = resize_mask(m, W, H)
         images.append(img)
         Ks.append(K)
         w2cs.append(cams.world_to_cam[v])
@@ -217,6 +217,9 @@ def load_scene(
             masks.append(m)
 
     meta = read_meta(root)
+    scan_id = meta.get("scan_id")
+    if scan_id is None and (m := re.fullmatch(r"scan(\d+)", root.name)):
+        scan_id = int(m.group(1))  # DTU folders are named scanNN
     return Scene(
         name=name or meta.get("name") or root.name,
         images=np.stack(images).astype(np.float32),
@@ -226,7 +229,7 @@ def load_scene(
         norm_to_world=cams.norm_to_world,
         view_ids=ids,
         source=root,
-        scan_id=meta.get("scan_id"),
+        scan_id=scan_id,
         meta=meta,
     )
 
@@ -286,6 +289,23 @@ def write_scene(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out_dir
+
+
+def stored_image_size(root: str | Path) -> tuple[int, int]:
+    """``(width, height)`` of the stored images of a scan (the size its cameras are for)."""
+    files = _numbered_files(find_image_dir(Path(root)))
+    if not files:
+        raise SceneError(f"{root}: no images")
+    h, w = read_image(next(iter(files.values()))).shape[:2]
+    return w, h
+
+
+def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Area-resample a bool mask (foreground where more than half the area is)."""
+    if mask.shape == (height, width):
+        return mask
+    interp = cv2.INTER_AREA if width < mask.shape[1] else cv2.INTER_LINEAR
+    return cv2.resize(mask.astype(np.float32), (width, height), interpolation=interp) > 0.5
 
 
 def load_masks(root: str | Path, view_ids: list[int] | None = None) -> dict[int, np.ndarray]:

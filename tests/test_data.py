@@ -1,0 +1,186 @@
+"""Scene data layer: DTU loader/writer, resizing, and clear errors on bad input."""
+import shutil
+
+import numpy as np
+import pytest
+
+from pipeline import geometry
+from pipeline.config import DataConfig
+from pipeline.data import dtu
+from pipeline.data.scene import SceneError
+from pipeline.stages.prepare import prepare_scene
+
+
+def test_bundled_scan_loads_with_expected_cameras(bundled_scan):
+    scene = dtu.load_scene(bundled_scan)
+    assert scene.view_ids == [23, 24, 33]
+    assert scene.images.shape == (3, 600, 800, 3) and scene.masks.shape == (3, 600, 800)
+    assert scene.scan_id == 24
+    # View 0 at 1600x1200 has fx 2892.3, cx 823.2 (METHOD.md); halved with integer pixel centres.
+    cams = dtu.load_cameras(bundled_scan)
+    assert len(cams.ids) == 49
+    K0 = cams.K[0]
+    assert K0[0, 0] == pytest.approx(2892.33 / 2, rel=1e-4)
+    assert K0[0, 2] == pytest.approx(823.205 / 2 - 0.25, rel=1e-4)
+    assert abs(K0[0, 1]) < 1e-3  # DTU's small skew is kept, not dropped
+    # The object (unit sphere centre) projects inside every input view and lies in front.
+    centre = scene.norm_to_world[:3, 3]
+    for K, T in zip(scene.K, scene.world_to_cam):
+        px, z = geometry.project(K, T, centre[None])
+        assert z[0] > 0 and 0 < px[0, 0] < 800 and 0 < px[0, 1] < 600
+
+
+def test_normalised_cameras_are_rigid_and_consistent(bundled_scan):
+    scene = dtu.load_scene(bundled_scan)
+    Tn = scene.world_to_cam_normalised()
+    s = scene.norm_scale_mm
+    x_norm = np.array([0.1, -0.2, 0.3])
+    x_world = (scene.norm_to_world @ np.r_[x_norm, 1])[:3]
+    for T, Tn_i in zip(scene.world_to_cam, Tn):
+        np.testing.assert_allclose(Tn_i[:3, :3] @ Tn_i[:3, :3].T, np.eye(3), atol=1e-9)
+        cam_mm = T[:3, :3] @ x_world + T[:3, 3]
+        cam_norm = Tn_i[:3, :3] @ x_norm + Tn_i[:3, 3]
+        np.testing.assert_allclose(cam_norm * s, cam_mm, rtol=1e-9)
+
+
+def _write_synthetic(tmp_path, n=3, size=(40, 30), ids=None):
+    rng = np.random.default_rng(0)
+    ids = list(range(n)) if ids is None else ids
+    K = np.array([[50.0, 0, 19.5], [0, 50.0, 14.5], [0, 0, 1]])
+    Ks, Ts, imgs, masks = {}, {}, {}, {}
+    for v in ids:
+        T = np.eye(4)
+        T[:3, 3] = [v * 10.0, 0, 500.0]
+        Ks[v], Ts[v] = K, T
+        imgs[v] = rng.uniform(size=(size[1], size[0], 3))
+        m = np.zeros((size[1], size[0]), bool)
+        m[5:20, 5:30] = True
+        masks[v] = m
+    S = np.diag([100.0, 100.0, 100.0, 1.0])
+    return dtu.write_scene(tmp_path / "scan", imgs, Ks, Ts, S, masks=masks, meta={"name": "toy", "scan_id": 5})
+
+
+def test_write_then_load_roundtrip_reprojects_known_points(tmp_path):
+    root = _write_synthetic(tmp_path)
+    scene = dtu.load_scene(root, view_ids=None)
+    assert scene.view_ids == [0, 1, 2] and scene.scan_id == 5 and scene.name == "toy"
+    pts = np.array([[0.0, 0, 0], [3, -2, 10], [-5, 4, -20]])
+    for v in range(3):
+        T = np.eye(4)
+        T[:3, 3] = [v * 10.0, 0, 500.0]
+        want, _ = geometry.project(np.array([[50.0, 0, 19.5], [0, 50.0, 14.5], [0, 0, 1]]), T, pts)
+        got, _ = geometry.project(scene.K[v], scene.world_to_cam[v], pts)
+        np.testing.assert_allclose(got, want, atol=1e-9)
+
+
+def test_resize_scales_K_and_masks_consistently(tmp_path):
+    root = _write_synthetic(tmp_path, size=(40, 30))
+    full = dtu.load_scene(root, view_ids=None)
+    half = dtu.load_scene(root, view_ids=None, resolution=(20, 15))
+    assert half.images.shape == (3, 15, 20, 3) and half.masks.shape == (3, 15, 20)
+    # A point at full-res pixel centre (x, y) lands at half-res 0.5 (x + 0.5) - 0.5.
+    pt = geometry.backproject_depth(full.K[0], full.world_to_cam[0], np.full((30, 40), 400.0))[9, 13]
+    px, _ = geometry.project(half.K[0], half.world_to_cam[0], pt[None])
+    np.testing.assert_allclose(px[0], [0.5 * 13.5 - 0.5, 0.5 * 9.5 - 0.5], atol=1e-9)
+    # Mask rows 5..19, cols 5..29 at full res -> half res about rows 2.5..9.5, cols 2.5..14.5.
+    assert half.masks[0, 5, 8] and not half.masks[0, 12, 8]
+
+
+def test_prepare_keeps_all_cameras_and_masks(tmp_path, bundled_scan):
+    out = tmp_path / "prepared"
+    scene = prepare_scene(bundled_scan, out, DataConfig(views=[23, 33], width=400, height=300))
+    assert scene.view_ids == [23, 33]
+    cams = dtu.load_cameras(out)
+    assert len(cams.ids) == 49
+    assert len(dtu.load_masks(out)) == 49
+    again = dtu.load_scene(out, view_ids=None)
+    assert again.view_ids == [23, 33] and again.images.shape == (2, 300, 400, 3)
+    np.testing.assert_allclose(again.K, scene.K, atol=1e-9)
+
+
+# ---- bad input -------------------------------------------------------------------
+
+
+def test_missing_directory_and_files(tmp_path):
+    with pytest.raises(SceneError, match="not found"):
+        dtu.load_scene(tmp_path / "nope")
+    (tmp_path / "a").mkdir()
+    with pytest.raises(SceneError, match="no image directory"):
+        dtu.load_scene(tmp_path / "a")
+    root = _write_synthetic(tmp_path)
+    (root / "cameras_sphere.npz").unlink()
+    with pytest.raises(SceneError, match="no camera file"):
+        dtu.load_scene(root, view_ids=None)
+
+
+def test_camera_count_must_match_full_scan(tmp_path):
+    root = _write_synthetic(tmp_path)
+    data = dict(np.load(root / "cameras_sphere.npz"))
+    data["world_mat_7"] = data["world_mat_0"]
+    data["scale_mat_7"] = data["scale_mat_0"]
+    np.savez(root / "cameras_sphere.npz", **data)
+    with pytest.raises(SceneError, match=r"camera count \(4\) does not match image count \(3\)"):
+        dtu.load_scene(root, view_ids=None)
+
+
+def test_image_without_camera(tmp_path):
+    root = _write_synthetic(tmp_path, ids=[3, 5])
+    shutil.copy(root / "image" / "000003.png", root / "image" / "000009.png")
+    with pytest.raises(SceneError, match=r"no world_mat for image\(s\) \[9\]"):
+        dtu.load_scene(root, view_ids=None)
+
+
+@pytest.mark.parametrize("value, pattern", [(np.nan, "non-finite"), (0.0, "singular")])
+def test_bad_camera_matrix_names_file_and_entry(tmp_path, value, pattern):
+    root = _write_synthetic(tmp_path)
+    data = dict(np.load(root / "cameras_sphere.npz"))
+    data["world_mat_1"] = np.full((4, 4), value)
+    np.savez(root / "cameras_sphere.npz", **data)
+    with pytest.raises(SceneError, match=rf"cameras_sphere.npz: world_mat_1: .*{pattern}"):
+        dtu.load_scene(root, view_ids=None)
+
+
+def test_corrupt_image(tmp_path):
+    root = _write_synthetic(tmp_path)
+    (root / "image" / "000001.png").write_bytes(b"not a png")
+    with pytest.raises(SceneError, match=r"000001.png: not a readable image"):
+        dtu.load_scene(root, view_ids=None)
+
+
+def test_wrongly_sized_image_and_mask(tmp_path):
+    import cv2
+
+    root = _write_synthetic(tmp_path)
+    cv2.imwrite(str(root / "image" / "000002.png"), np.zeros((10, 10, 3), np.uint8))
+    with pytest.raises(SceneError, match=r"000002.png: size 10x10 differs"):
+        dtu.load_scene(root, view_ids=None)
+    root = _write_synthetic(tmp_path / "b")
+    cv2.imwrite(str(root / "mask" / "001.png"), np.full((10, 10), 255, np.uint8))
+    with pytest.raises(SceneError, match=r"001.png: mask size 10x10 differs from image size 40x30"):
+        dtu.load_scene(root, view_ids=None)
+
+
+def test_empty_and_missing_mask(tmp_path):
+    import cv2
+
+    root = _write_synthetic(tmp_path)
+    cv2.imwrite(str(root / "mask" / "000.png"), np.zeros((30, 40), np.uint8))
+    with pytest.raises(SceneError, match=r"000.png: mask is empty"):
+        dtu.load_scene(root, view_ids=None)
+    (root / "mask" / "000.png").unlink()
+    with pytest.raises(SceneError, match="no mask for view 0"):
+        dtu.load_scene(root, view_ids=None)
+
+
+def test_requested_view_missing(tmp_path):
+    root = _write_synthetic(tmp_path)
+    with pytest.raises(SceneError, match="view 23 requested"):
+        dtu.load_scene(root, view_ids=[23])
+
+
+def test_write_scene_leaves_nothing_on_failure(tmp_path):
+    bad = {0: np.zeros((4, 4, 3))}
+    with pytest.raises(FileNotFoundError):
+        dtu.write_scene(tmp_path / "out", bad, K={}, world_to_cam={}, norm_to_world=np.eye(4),
+                        masks=None, extra={"x": tmp_path / "missing"})
+    assert list(tmp_path.iterdir()) == []

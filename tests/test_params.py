@@ -1,0 +1,33 @@
+"""params.yaml must be the Hydra composition of conf/ (DVC reads params.yaml only)."""
+import yaml
+
+from pipeline import config
+from pipeline.config import compose_params, dump_params
+
+
+def test_params_yaml_is_composed_from_conf():
+    composed = dump_params(compose_params())
+    current = config.PARAMS_PATH.read_text()
+    assert yaml.safe_load(current) == yaml.safe_load(composed), "params.yaml is stale: run `gcgs params --write`"
+    assert current == composed
+
+
+def test_every_section_parses_into_its_dataclass():
+    params = config.load_params()
+    untyped = set(params) - set(config.SECTIONS) - {"scenes"}
+    assert not untyped, f"params sections without a typed config in config.SECTIONS: {untyped}"
+    for key, cls in config.SECTIONS.items():
+        config.section(cls, key, params)
+    for name, entry in params["scenes"].items():
+        config.from_dict(config.SceneEntry, entry, where=f"scenes.{name}")
+
+
+def test_unknown_key_is_rejected():
+    import pytest
+
+    with pytest.raises(ValueError, match=r"unknown key\(s\) \['widht'\] in config section data"):
+        config.from_dict(config.DataConfig, {"widht": 3}, where="data")
+
+
+def test_hydra_override_changes_composition():
+    assert compose_params(["data.width=400"])["data"]["width"] == 400
