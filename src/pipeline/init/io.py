@@ -1,0 +1,196 @@
+"""File formats of the init stage (documented in ``docs/init.md``).
+
+* ``points.ply``: binary little-endian PLY; per vertex ``x y z`` (float32, world mm),
+  ``nx ny nz`` (float32, unit normals), ``red green blue`` (uint8) and ``confidence``
+  (float32 in [0, 1]). Written by hand so that the custom property is kept exactly.
+* ``depth/{view:03d}.npz``: one per input view (``view`` = DTU view id):
+  ``depth_mm`` float32 (H, W) camera-frame z in mm (0 where invalid), ``confidence``
+  float32 (H, W) in [0, 1] (0 where invalid), ``valid`` bool (H, W), ``K`` float64 (3, 3)
+  at this (H, W) with integer pixel centres, ``world_to_cam`` float64 (4, 4) world mm ->
+  camera, ``view_id`` int64 scalar.
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+
+class InitFormatError(ValueError):
+    """A points.ply or depth file that cannot be read; the message names the file."""
+
+
+@dataclass
+class PointCloud:
+    """A coloured, oriented point cloud in the world frame (mm)."""
+
+    points_mm: np.ndarray  # (N, 3) float, world frame, mm
+    colors: np.ndarray  # (N, 3) float in [0, 1]
+    normals: np.ndarray  # (N, 3) unit vectors, world frame
+    confidence: np.ndarray  # (N,) float in [0, 1]
+
+    def __post_init__(self) -> None:
+        n = len(self.points_mm)
+        for name, arr, shape in (
+            ("points_mm", self.points_mm, (n, 3)),
+            ("colors", self.colors, (n, 3)),
+            ("normals", self.normals, (n, 3)),
+            ("confidence", self.confidence, (n,)),
+        ):
+            if arr.shape != shape:
+                raise ValueError(f"PointCloud.{name} must have shape {shape}, got {arr.shape}")
+            if not np.all(np.isfinite(arr)):
+                raise ValueError(f"PointCloud.{name} has non-finite values")
+
+    def __len__(self) -> int:
+        return len(self.points_mm)
+
+
+_PLY_DTYPE = np.dtype(
+    [
+        ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+        ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+        ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+        ("confidence", "<f4"),
+    ]
+)
+_PLY_TYPES = {"<f4": "float", "u1": "uchar"}
+
+
+def _atomic_write_bytes(path: Path, chunks: list[bytes]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            for c in chunks:
+                fh.write(c)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_ply(path: str | Path, cloud: PointCloud) -> Path:
+    """Write ``cloud`` as binary PLY (atomically: temp file in the same dir, then rename)."""
+    path = Path(path)
+    rec = np.empty(len(cloud), dtype=_PLY_DTYPE)
+    for i, k in enumerate("xyz"):
+        rec[k] = cloud.points_mm[:, i]
+        rec["n" + k] = cloud.normals[:, i]
+    rgb = np.clip(np.round(cloud.colors * 255.0), 0, 255).astype(np.uint8)
+    rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    rec["confidence"] = cloud.confidence
+    props = "".join(f"property {_PLY_TYPES[_PLY_DTYPE[n].str]} {n}\n" for n in _PLY_DTYPE.names)
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        "comment gcgs init point cloud: world frame, millimetres\n"
+        f"element vertex {len(cloud)}\n{props}end_header\n"
+    )
+    _atomic_write_bytes(path, [header.encode("ascii"), rec.tobytes()])
+    return path
+
+
+def read_ply(path: str | Path) -> PointCloud:
+    """Read a PLY written by :func:`write_ply`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InitFormatError(f"{path}: file not found")
+    raw = path.read_bytes()
+    end = raw.find(b"end_header\n")
+    if not raw.startswith(b"ply\n") or end < 0:
+        raise InitFormatError(f"{path}: not a PLY file (no 'ply' magic or no end_header)")
+    header = raw[:end].decode("ascii", errors="replace").splitlines()
+    if "format binary_little_endian 1.0" not in header:
+        raise InitFormatError(f"{path}: expected binary_little_endian PLY")
+    try:
+        n = int(next(line.split()[2] for line in header if line.startswith("element vertex")))
+    except (StopIteration, IndexError, ValueError):
+        raise InitFormatError(f"{path}: no 'element vertex N' line") from None
+    props = [line.split()[-1] for line in header if line.startswith("property")]
+    if props != list(_PLY_DTYPE.names):
+        raise InitFormatError(f"{path}: vertex properties {props} differ from {list(_PLY_DTYPE.names)}")
+    body = raw[end + len(b"end_header\n"):]
+    if len(body) != n * _PLY_DTYPE.itemsize:
+        raise InitFormatError(f"{path}: truncated ({len(body)} bytes of vertex data, expected {n * _PLY_DTYPE.itemsize})")
+    rec = np.frombuffer(body, dtype=_PLY_DTYPE)
+    try:
+        return PointCloud(
+            points_mm=np.stack([rec["x"], rec["y"], rec["z"]], 1).astype(np.float64),
+            colors=np.stack([rec["red"], rec["green"], rec["blue"]], 1).astype(np.float32) / 255.0,
+            normals=np.stack([rec["nx"], rec["ny"], rec["nz"]], 1).astype(np.float32),
+            confidence=rec["confidence"].astype(np.float32),
+        )
+    except ValueError as exc:
+        raise InitFormatError(f"{path}: {exc}") from exc
+
+
+@dataclass
+class DepthMap:
+    """One view's depth in its own camera frame (mm), with confidence and validity."""
+
+    view_id: int
+    depth_mm: np.ndarray  # (H, W) float32 camera z, mm; 0 where invalid
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]; 0 where invalid
+    valid: np.ndarray  # (H, W) bool
+    K: np.ndarray  # (3, 3) at (H, W)
+    world_to_cam: np.ndarray  # (4, 4) world mm -> camera
+
+
+DEPTH_KEYS = ("depth_mm", "confidence", "valid", "K", "world_to_cam", "view_id")
+
+
+def depth_path(out_dir: str | Path, view_id: int) -> Path:
+    return Path(out_dir) / "depth" / f"{int(view_id):03d}.npz"
+
+
+def write_depth(path: str | Path, d: DepthMap) -> Path:
+    """Write one depth map (atomically). Invalid pixels are zeroed in depth and confidence."""
+    path = Path(path)
+    valid = np.asarray(d.valid, dtype=bool)
+    depth = np.where(valid, d.depth_mm, 0.0).astype(np.float32)
+    conf = np.where(valid, d.confidence, 0.0).astype(np.float32)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz", dir=path.parent)
+    os.close(fd)
+    try:
+        np.savez_compressed(
+            tmp, depth_mm=depth, confidence=conf, valid=valid,
+            K=np.asarray(d.K, np.float64), world_to_cam=np.asarray(d.world_to_cam, np.float64),
+            view_id=np.int64(d.view_id),
+        )
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_depth(path: str | Path) -> DepthMap:
+    """Read and check a depth file; errors name the file and the problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise InitFormatError(f"{path}: file not found")
+    try:
+        with np.load(path) as z:
+            data = {k: z[k] for k in z.files}
+    except Exception as exc:  # zip/format errors vary; name the file
+        raise InitFormatError(f"{path}: cannot read depth file ({exc})") from exc
+    missing = [k for k in DEPTH_KEYS if k not in data]
+    if missing:
+        raise InitFormatError(f"{path}: missing key(s) {missing}")
+    depth, conf, valid = data["depth_mm"], data["confidence"], data["valid"]
+    if depth.ndim != 2 or conf.shape != depth.shape or valid.shape != depth.shape:
+        raise InitFormatError(f"{path}: depth_mm {depth.shape}, confidence {conf.shape} and valid {valid.shape} must be equal (H, W)")
+    if data["K"].shape != (3, 3) or data["world_to_cam"].shape != (4, 4):
+        raise InitFormatError(f"{path}: K must be 3x3 and world_to_cam 4x4")
+    if not np.all(np.isfinite(depth)) or not np.all(np.isfinite(conf)):
+        raise InitFormatError(f"{path}: non-finite depth or confidence")
+    if np.any(depth[valid.astype(bool)] <= 0):
+        raise InitFormatError(f"{path}: valid pixels with depth <= 0")
+    return DepthMap(
+        view_id=int(data["view_id"]), depth_mm=depth.astype(np.float32), confidence=conf.astype(np.float32),
+        valid=valid.astype(bool), K=data["K"].astype(np.float64), world_to_cam=data["world_to_cam"].astype(np.float64),
+    )
