@@ -11,8 +11,10 @@ fi
 stamp=.venv/.gcgs-installed
 want=$(cat requirements.txt pyproject.toml | sha256sum | cut -c1-16)
 if [ ! -f "$stamp" ] || [ "$(cat "$stamp")" != "$want" ]; then
-  python -m pip install -q torch==2.13.0
-  python -m pip install -q -r requirements.txt
-  python -m pip install -q --no-deps -e .
+  # pip warns about every absent mirror folder of this machine's index; keep the log readable.
+  quiet() { "$@" 2>&1 | { grep -v "^WARNING: Location" || true; }; }
+  quiet python -m pip install -q torch==2.13.0
+  quiet python -m pip install -q -r requirements.txt
+  quiet python -m pip install -q --no-deps -e .
   echo "$want" > "$stamp"
 fi
