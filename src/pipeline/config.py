@@ -63,6 +63,86 @@ class LossConfig:
 
 
 @dataclass
+class MVSConfig:
+    """Plane-sweep MVS (docs/init.md)."""
+
+    depth_step_px: float = 1.0  # plane spacing, pixels of disparity in the widest-baseline source
+    max_depths: int = 512  # cap on the number of planes
+    window: int = 7  # NCC window side, pixels (odd)
+    min_ncc: float = 0.5  # winner's mean NCC below this -> invalid
+    min_std: float = 0.01  # reference window std (grey in [0, 1]) below this -> textureless, invalid
+    sphere_margin: float = 1.0  # depth range: rays crossed with the unit sphere scaled by this
+    chunk: int = 8  # planes processed at once
+
+    def __post_init__(self) -> None:
+        if self.window < 3 or self.window % 2 == 0:
+            raise ValueError(f"init.mvs.window must be odd and >= 3, got {self.window}")
+        if self.depth_step_px <= 0 or self.max_depths < 3 or self.chunk < 1:
+            raise ValueError("init.mvs: depth_step_px must be > 0, max_depths >= 3, chunk >= 1")
+
+
+@dataclass
+class ConsistencyConfig:
+    """Geometric consistency of depth maps across views (mvs and mast3r)."""
+
+    px: float = 1.0  # reprojection error bound, pixels
+    rel_depth: float = 0.002  # relative depth error bound
+    min_views: int = 1  # other views that must agree
+
+
+@dataclass
+class SfMConfig:
+    """SIFT matches triangulated with the known cameras."""
+
+    max_features: int = 20000  # per view
+    ratio: float = 0.8  # Lowe's ratio test
+    epipolar_px: float = 2.0  # distance to the epipolar line from the known cameras, pixels
+    reproj_px: float = 2.0  # reprojection error bound after triangulation, pixels
+    min_angle_deg: float = 1.0  # triangulation angle lower bound
+
+
+@dataclass
+class MASt3RConfig:
+    """MASt3R ONNX backend (contract in docs/init.md)."""
+
+    model: str | None = None  # path of the ONNX file (or --model)
+    long_side: int = 512  # network input long side, pixels (dynamic-shape models)
+    min_conf: float = 1.5  # MASt3R confidence (>= 1) below this -> invalid
+    fit_shift: bool = False  # fit depth = s * pred + t instead of s * pred
+    match_subsample: int = 4  # pixel stride for the 3D reciprocal nearest-neighbour matches
+    ransac_iters: int = 200
+    inlier_rel: float = 0.01  # RANSAC inlier bound on relative depth error
+
+
+@dataclass
+class InitConfig:
+    """The init stage (conf/init/*.yaml)."""
+
+    backend: str = "mvs"
+    seed: int = 0
+    voxel_norm: float = 0.002  # cloud voxel size, unit-sphere radii (x scale_mat radius = mm)
+    normal_knn: int = 20
+    random_points: int = 100000  # random backend: points in the unit sphere
+    mvs: MVSConfig = field(default_factory=MVSConfig)
+    consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
+    sfm: SfMConfig = field(default_factory=SfMConfig)
+    mast3r: MASt3RConfig = field(default_factory=MASt3RConfig)
+
+    BACKENDS = ("mvs", "sfm", "mast3r", "random")
+
+    def __post_init__(self) -> None:
+        for name, cls in (("mvs", MVSConfig), ("consistency", ConsistencyConfig), ("sfm", SfMConfig),
+                          ("mast3r", MASt3RConfig)):
+            value = getattr(self, name)
+            if isinstance(value, dict) or value is None:
+                setattr(self, name, from_dict(cls, value, where=f"init.{name}"))
+        if self.backend not in self.BACKENDS:
+            raise ValueError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
+        if self.voxel_norm < 0:
+            raise ValueError(f"init.voxel_norm must be >= 0, got {self.voxel_norm}")
+
+
+@dataclass
 class SceneEntry:
     """One entry of ``scenes`` in params.yaml."""
 
