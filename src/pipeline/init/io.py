@@ -194,3 +194,13 @@ def read_depth(path: str | Path) -> DepthMap:
         view_id=int(data["view_id"]), depth_mm=depth.astype(np.float32), confidence=conf.astype(np.float32),
         valid=valid.astype(bool), K=data["K"].astype(np.float64), world_to_cam=data["world_to_cam"].astype(np.float64),
     )
+
+
+@dataclass
+class InitResult:
+    """What a backend produces: the cloud, per-view depth maps (depth backends) and
+    facts for ``init.json``."""
+
+    cloud: PointCloud
+    depths: list[DepthMap] | None
+    info: dict

@@ -1,0 +1,233 @@
+"""Plane-sweep multi-view stereo with known cameras (the default init backend).
+
+For each reference view, fronto-parallel planes (uniform in inverse depth, so roughly
+one pixel of disparity apart) sweep the depth range where the reference rays cross the
+scene's unit sphere. Each source view is warped onto every plane (``grid_sample``) and
+compared with the reference by zero-mean normalised cross-correlation over a square
+window (box filters), which is invariant to gain and offset changes of the lighting.
+The per-pixel score is the mean NCC over the source views that see the point;
+winner-take-all picks a plane, and a parabola through the scores of the neighbouring
+planes (in inverse depth) refines it below the plane spacing. Masks are honoured: only
+object pixels of the reference get a depth, and hypotheses that land outside a source
+view's mask score as no match.
+
+All depths are camera-frame z in mm; all positions world-frame mm.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pipeline import geometry
+from pipeline.config import InitConfig, MVSConfig
+from pipeline.data.scene import Scene
+from pipeline.init.fusion import check_consistency, fuse_views
+from pipeline.init.io import DepthMap, InitResult
+
+
+def to_grey(images: np.ndarray) -> np.ndarray:
+    """``(..., 3)`` RGB in [0, 1] -> luminance (Rec. 601)."""
+    return images @ np.array([0.299, 0.587, 0.114], dtype=images.dtype)
+
+
+def sphere_depth_range(K: np.ndarray, world_to_cam: np.ndarray, norm_to_world: np.ndarray,
+                       pixels: np.ndarray, margin: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Per-pixel ``(near, far)`` camera z (mm) where each ray crosses the scene sphere.
+
+    The sphere is the normalised unit sphere scaled by ``margin`` (world centre
+    ``norm_to_world[:3, 3]``, radius ``margin * norm_to_world[0, 0]`` mm). Rays that miss
+    it get ``near = far = nan``. ``pixels`` is ``(M, 2)`` (x, y).
+    """
+    centre = norm_to_world[:3, 3]
+    radius = margin * norm_to_world[0, 0]
+    c_cam = world_to_cam[:3, :3] @ centre + world_to_cam[:3, 3]
+    rays = np.c_[pixels, np.ones(len(pixels))] @ np.linalg.inv(K).T  # z = 1 rays
+    # |t r - c|^2 = R^2 with t the camera z (rays have unit z).
+    a = np.einsum("ij,ij->i", rays, rays)
+    b = rays @ c_cam
+    disc = b * b - a * (c_cam @ c_cam - radius * radius)
+    with np.errstate(invalid="ignore"):
+        s = np.sqrt(disc)
+    near = np.where(disc > 0, (b - s) / a, np.nan)
+    far = np.where(disc > 0, (b + s) / a, np.nan)
+    return np.maximum(near, 1e-3 * radius), far
+
+
+def box_sum(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Sum over a ``k x k`` window (zero outside the image), by separable running sums.
+
+    The running sums are taken in float64: NCC subtracts nearly equal window moments,
+    which float32 running sums over a whole row would not resolve.
+    """
+    p = k // 2
+    x = F.pad(x.double(), (p + 1, p, 0, 0)).cumsum(-1)
+    x = x[..., k:] - x[..., :-k]
+    x = F.pad(x, (0, 0, p + 1, p)).cumsum(-2)
+    return (x[..., k:, :] - x[..., :-k, :]).float()
+
+
+def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
+    """Mean over a ``k x k`` window; border windows average the pixels they cover."""
+    count = box_sum(torch.ones((1, 1) + tuple(x.shape[-2:])), k)
+    return box_sum(x, k) / count
+
+
+@dataclass
+class SweepResult:
+    depth_mm: np.ndarray  # (H, W) float32, 0 where invalid
+    score: np.ndarray  # (H, W) float32 mean NCC of the winner, -1 where invalid
+    valid: np.ndarray  # (H, W) bool
+    num_depths: int
+
+
+def _relative_warp(K_r, T_r, K_s, T_s):
+    """``(A, b)`` with source pixel ~ ``A @ [x, y, 1] * z + b`` for reference depth z."""
+    T_rs = T_s @ geometry.rigid_inverse(T_r)
+    A = K_s @ T_rs[:3, :3] @ np.linalg.inv(K_r)
+    b = K_s @ T_rs[:3, 3]
+    return A, b
+
+
+def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | None = None) -> SweepResult:
+    """Depth map of view ``ref`` by plane sweep against every other view of ``scene``."""
+    H, W = scene.height, scene.width
+    grey = to_grey(scene.images) if grey is None else grey
+    mask = scene.masks[ref] if scene.masks is not None else np.ones((H, W), bool)
+    srcs = [i for i in range(scene.num_views) if i != ref]
+    out = SweepResult(np.zeros((H, W), np.float32), np.full((H, W), -1.0, np.float32), np.zeros((H, W), bool), 0)
+    if not srcs or not mask.any():
+        return out
+
+    # Work on the mask's bounding box (plus half a window) only.
+    k = params.window
+    ys, xs = np.nonzero(mask)
+    y0, y1 = max(ys.min() - k, 0), min(ys.max() + k + 1, H)
+    x0, x1 = max(xs.min() - k, 0), min(xs.max() + k + 1, W)
+    h, w = y1 - y0, x1 - x0
+    gy, gx = np.mgrid[y0:y1, x0:x1]
+    pix = np.stack([gx.ravel(), gy.ravel()], 1).astype(np.float64)
+    near, far = sphere_depth_range(scene.K[ref], scene.world_to_cam[ref], scene.norm_to_world, pix, params.sphere_margin)
+    in_box_mask = mask[y0:y1, x0:x1].ravel() & np.isfinite(near)
+    if not in_box_mask.any():
+        return out
+    z_near, z_far = float(near[in_box_mask].min()), float(far[in_box_mask].max())
+
+    # Plane count: disparity span between z_near and z_far in the widest-baseline source.
+    warps = [_relative_warp(scene.K[ref], scene.world_to_cam[ref], scene.K[s], scene.world_to_cam[s]) for s in srcs]
+    sel = pix[in_box_mask][:: max(1, in_box_mask.sum() // 2000)]
+    ph = np.c_[sel, np.ones(len(sel))]
+    span = 0.0
+    for A, b in warps:
+        q_near = (ph @ A.T) * z_near + b
+        q_far = (ph @ A.T) * z_far + b
+        d = np.linalg.norm(q_near[:, :2] / q_near[:, 2:] - q_far[:, :2] / q_far[:, 2:], axis=1)
+        span = max(span, float(np.percentile(d, 95)))
+    D = int(min(params.max_depths, max(3, math.ceil(span / params.depth_step_px) + 1)))
+    inv_planes = np.linspace(1.0 / z_far, 1.0 / z_near, D)  # index 0 = far
+
+    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
+    ref_img = t(grey[ref, y0:y1, x0:x1])[None, None]
+    mu_r = box_mean(ref_img, k)
+    var_r = (box_mean(ref_img * ref_img, k) - mu_r * mu_r).clamp_min(0.0)
+    std_r = var_r.sqrt()
+    near_t = t(np.nan_to_num(near, nan=np.inf).reshape(h, w))
+    far_t = t(np.nan_to_num(far, nan=-np.inf).reshape(h, w))
+    pix_h = t(np.c_[pix, np.ones(len(pix))].T).reshape(3, h, w)
+    src_data = []
+    for s, (A, b) in zip(srcs, warps):
+        Ap = torch.einsum("ij,jhw->ihw", t(A), pix_h)
+        smask = scene.masks[s] if scene.masks is not None else np.ones((H, W))
+        # Image and mask warped together (one grid_sample); the mask is tested at > 0.5.
+        src_data.append((Ap, t(b).view(3, 1, 1), t(np.stack([grey[s], smask]))[None]))
+    count = box_sum(torch.ones((1, 1, h, w)), k)
+
+    cost = torch.empty((D, h, w), dtype=torch.float32)
+    eps = 1e-8
+    for c0 in range(0, D, params.chunk):
+        zs = t(1.0 / inv_planes[c0:c0 + params.chunk]).view(-1, 1, 1, 1)
+        C = zs.shape[0]
+        acc = torch.zeros((C, 1, h, w))
+        cnt = torch.zeros((C, 1, h, w))
+        for Ap, b, img in src_data:
+            q = Ap.unsqueeze(0) * zs + b.unsqueeze(0)  # (C, 3, h, w)
+            z = q[:, 2:3]
+            u = q[:, 0:1] / z
+            v = q[:, 1:2] / z
+            # align_corners=True: normalised -1 / +1 are the centres of the first / last pixel.
+            grid = torch.cat([u / (W - 1) * 2 - 1, v / (H - 1) * 2 - 1], 1).permute(0, 2, 3, 1)
+            warped = F.grid_sample(img.expand(C, 2, H, W), grid, mode="bilinear", padding_mode="border", align_corners=True)
+            S, in_mask = warped[:, :1], warped[:, 1:] > 0.5
+            inside = (z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+            moments = box_sum(torch.cat([S, S * S, ref_img * S], 1), k) / count
+            mu_s = moments[:, :1]
+            var_s = (moments[:, 1:2] - mu_s * mu_s).clamp_min(0.0)
+            cov = moments[:, 2:3] - mu_r * mu_s
+            ncc = cov / torch.sqrt(var_r * var_s + eps)
+            seen = inside.float()
+            # A point that the source sees outside its object mask cannot be on the object.
+            ncc = torch.where(in_mask, ncc, torch.full_like(ncc, -1.0))
+            acc += ncc * seen
+            cnt += seen
+        score = torch.where(cnt > 0, acc / cnt.clamp_min(1.0), torch.full_like(acc, -1.0))[:, 0]
+        # Hypotheses outside the sphere interval of a pixel's own ray cannot be the object.
+        outside = (zs[:, 0] < near_t.unsqueeze(0)) | (zs[:, 0] > far_t.unsqueeze(0))
+        cost[c0:c0 + C] = torch.where(outside, torch.full_like(score, -1.0), score)
+
+    best_score, best = cost.max(0)
+    idx = best.clamp(1, D - 2)
+    c_m = cost.gather(0, (idx - 1).unsqueeze(0))[0]
+    c_0 = cost.gather(0, idx.unsqueeze(0))[0]
+    c_p = cost.gather(0, (idx + 1).unsqueeze(0))[0]
+    curv = c_m - 2 * c_0 + c_p
+    interior = (best > 0) & (best < D - 1) & (curv < 0)
+    offset = torch.where(interior, 0.5 * (c_m - c_p) / torch.where(interior, curv, torch.ones_like(curv)), torch.zeros_like(curv))
+    offset = offset.clamp(-0.5, 0.5)
+    step = (inv_planes[-1] - inv_planes[0]) / (D - 1)
+    inv_d = torch.from_numpy(inv_planes).float()[best] + offset * float(step)
+    depth = (1.0 / inv_d).numpy()
+
+    valid = (
+        mask[y0:y1, x0:x1]
+        & interior.numpy()
+        & (best_score.numpy() >= params.min_ncc)
+        & (std_r[0, 0].numpy() >= params.min_std)
+    )
+    out.depth_mm[y0:y1, x0:x1] = np.where(valid, depth, 0.0)
+    out.score[y0:y1, x0:x1] = np.where(valid, best_score.numpy(), -1.0)
+    out.valid[y0:y1, x0:x1] = valid
+    out.num_depths = D
+    return out
+
+
+def run(scene: Scene, cfg: InitConfig) -> InitResult:
+    """The ``mvs`` backend: sweep every view, check consistency, fuse.
+
+    Per-pixel confidence = max(NCC, 0) * (agreeing other views) / (N - 1).
+    """
+    grey = to_grey(scene.images)
+    sweeps = [sweep_view(scene, r, cfg.mvs, grey) for r in range(scene.num_views)]
+    depths = np.stack([s.depth_mm for s in sweeps])
+    valid = np.stack([s.valid for s in sweeps])
+    views = check_consistency(depths, valid, scene.K, scene.world_to_cam, scene.images, cfg.consistency)
+    n_other = max(scene.num_views - 1, 1)
+    maps, point_conf = [], []
+    for i, (sw, vp) in enumerate(zip(sweeps, views)):
+        conf = np.clip(sw.score, 0.0, 1.0) * vp.count / n_other
+        maps.append(DepthMap(scene.view_ids[i], sw.depth_mm, np.where(vp.valid, conf, 0.0).astype(np.float32),
+                             vp.valid, scene.K[i], scene.world_to_cam[i]))
+        point_conf.append(conf[vp.pixels[:, 0], vp.pixels[:, 1]])
+    cloud = fuse_views(views, point_conf, scene.world_to_cam, cfg.voxel_norm * scene.norm_scale_mm, cfg.normal_knn)
+    info = {
+        "num_depths": [s.num_depths for s in sweeps],
+        "matched_fraction": [float(s.valid.sum() / max(1, m.sum())) for s, m in zip(sweeps, _masks(scene))],
+        "consistent_fraction": [float(v.valid.sum() / max(1, m.sum())) for v, m in zip(views, _masks(scene))],
+    }
+    return InitResult(cloud, maps, info)
+
+
+def _masks(scene: Scene) -> np.ndarray:
+    return scene.masks if scene.masks is not None else np.ones(scene.images.shape[:3], bool)
