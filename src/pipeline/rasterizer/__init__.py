@@ -1,0 +1,75 @@
+"""Differentiable rasterizer of 2D Gaussian surfels (2DGS), one interface, three backends.
+
+    out = rasterize(Surfels(means, quats, scales, opacities, features), Camera(K, world_to_cam, W, H))
+
+* ``cpu``: hand-written numba forward/backward kernels, multithreaded over 16x16 tiles.
+* ``reference``: dense pure PyTorch with autograd; the oracle for tests.
+* ``cuda``: gsplat's ``rasterization_2dgs`` (needs CUDA and gsplat); it composites
+  surfel-centre depths, see ``docs/rasterizer.md``.
+
+Maths and conventions: ``docs/rasterizer.md``.
+"""
+from __future__ import annotations
+
+import torch
+
+from pipeline.rasterizer.project import project
+from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
+
+BACKENDS = ("cpu", "reference", "cuda")
+
+__all__ = ["BACKENDS", "Camera", "RenderOutput", "Surfels", "rasterize"]
+
+
+def rasterize(
+    surfels: Surfels,
+    camera: Camera,
+    backend: str = "cpu",
+    *,
+    depth_eps: float = 1e-6,
+    reference_block: int | None = None,
+) -> RenderOutput:
+    """Render ``surfels`` seen by ``camera``; every map is differentiable w.r.t. every
+    surfel parameter (see ``RenderOutput`` for frames and units).
+
+    Args:
+        depth_eps: the ``eps`` of ``depth_expected = sum w z / (sum w + eps)``.
+        reference_block: ``reference`` backend only: ``None`` evaluates every pixel
+            against every surfel; ``B`` works in ``B x B`` pixel blocks against the
+            surfels whose support box touches the block (same result, less memory).
+    """
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    if not (depth_eps >= 0 and depth_eps < float("inf")):
+        raise ValueError(f"depth_eps must be finite and >= 0, got {depth_eps}")
+    if reference_block is not None and (backend != "reference" or reference_block < 1):
+        raise ValueError("reference_block is a positive block size for the reference backend only")
+    if backend == "cuda":
+        from pipeline.rasterizer import cuda
+
+        return cuda.rasterize(surfels, camera, depth_eps=depth_eps)
+    if surfels.means.device.type != "cpu":
+        raise ValueError(f"the {backend} backend needs CPU tensors, got {surfels.means.device}")
+
+    proj = project(surfels, camera, track_means2d=torch.is_grad_enabled())
+    if backend == "cpu":
+        from pipeline.rasterizer import cpu
+
+        maps, _ = cpu.render(proj, camera)
+    else:
+        from pipeline.rasterizer import reference
+
+        maps = reference.render(proj, camera, block=reference_block)
+    features, alpha, depth_sum, normal_cam, median, distortion = maps
+    R_wc = camera.world_to_cam[:3, :3].to(normal_cam.dtype)
+    return RenderOutput(
+        features=features,
+        alpha=alpha,
+        depth_expected=depth_sum / (alpha + depth_eps),
+        depth_median=median,
+        normal_cam=normal_cam,
+        normal_world=normal_cam @ R_wc,  # n_world = R_wc^T n_cam, as rows
+        distortion=distortion,
+        radii=proj.radii,
+        means2d=proj.means2d,
+    )
