@@ -1,0 +1,56 @@
+"""``gcgs evaluate``: DTU Chamfer distance (accuracy, completeness, overall; mm) of a mesh.
+
+Follows the public DTU evaluation script (see :mod:`pipeline.evaluation.dtu_eval` and
+docs/evaluation.md). The mesh must be in the DTU world frame, in millimetres.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import sys
+from pathlib import Path
+
+from pipeline.config import DataConfig, EvaluateConfig, load_params, section
+from pipeline.data import dtu
+from pipeline.evaluation import dtu_eval, gt
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--mesh", required=True, help="mesh to evaluate (PLY/OBJ, world frame, mm)")
+    p.add_argument("--scene", required=True, help="DTU-layout scene folder (cameras and masks for culling)")
+    p.add_argument("--gt", default=None, help="ground-truth root in the DTU 'MVS Data' layout (default: SCENE/gt)")
+    p.add_argument("--scan-id", type=int, default=None,
+                   help="scan number of the GT files (default: scene.json, else the only one in the GT folder)")
+    p.add_argument("--cull", choices=("input", "all", "none"), default=None,
+                   help="mask culling views (default: params evaluate.cull_views)")
+    p.add_argument("--views", type=int, nargs="+", default=None, help="input views (default: params data.views)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the downsampling order")
+    p.add_argument("--params", default=None, help="params.yaml to read `evaluate` and `data` from")
+    p.add_argument("--out", required=True, help="metrics JSON to write")
+
+
+def run(args: argparse.Namespace) -> int:
+    params = load_params(args.params) if args.params else load_params()
+    cfg = section(EvaluateConfig, "evaluate", params)
+    if args.cull is not None:
+        cfg = dataclasses.replace(cfg, cull_views=args.cull)
+    views = args.views if args.views is not None else section(DataConfig, "data", params).views
+
+    scene = Path(args.scene)
+    if not scene.is_dir():
+        raise FileNotFoundError(f"{scene}: scene folder not found")
+    scan_id = args.scan_id if args.scan_id is not None else dtu.read_meta(scene).get("scan_id")
+    ground = gt.read_ground_truth(args.gt or scene / "gt", scan_id)
+    print(f"[evaluate] GT scan {ground.scan_id}: {len(ground.points_mm)} points, ObsMask {ground.obs_mask.shape} "
+          f"at {ground.res_mm} mm ({ground.root})", flush=True)
+    cull = dtu_eval.load_cull_views(scene, cfg.cull_views, views)
+    vertices, triangles = gt.read_mesh(args.mesh)
+    metrics = dtu_eval.evaluate_mesh(vertices, triangles, ground, cfg, views=cull, seed=args.seed,
+                                     log=lambda m: print(m, flush=True), name=str(args.mesh))
+    metrics.update(mesh=str(args.mesh), scene=str(scene), gt=str(ground.root))
+    dtu_eval.write_metrics(args.out, metrics)
+    print(f"[evaluate] wrote {args.out}", flush=True)
+    if not metrics["valid"]:
+        print(f"gcgs evaluate: warning: metrics undefined ({'; '.join(metrics['problems'])}); "
+              "written as null", file=sys.stderr)
+    return 0
