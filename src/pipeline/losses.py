@@ -1,0 +1,181 @@
+"""GCGS prior losses (see docs/priors.md): geometric-consistent features (Eq. 4-9) and
+normal consistency (Eq. 10-12). Differentiable torch functions; float32 or float64.
+
+Conventions: OpenCV camera axes, ``world_to_cam`` maps world (mm) to camera, pixel
+centres at integer coordinates (``pipeline.geometry``). Depth maps are camera-frame z in
+mm, as the 2DGS renderer gives them.
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+# Below this a feature vector counts as zero: its cosine with anything is defined as 0.
+COS_EPS = 1e-8
+# Camera-frame z (mm) below which a point counts as behind a source camera.
+MIN_Z_MM = 1e-6
+
+
+def _t(x, like: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(np.asarray(x) if not torch.is_tensor(x) else x, dtype=like.dtype, device=like.device)
+
+
+def sample_features(feats: torch.Tensor, pix: torch.Tensor, image_size: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bilinearly sample a feature map at image pixel positions.
+
+    Args:
+        feats: ``(C, h, w)`` features of an image of ``image_size = (H, W)``; a feature
+            map at scale ``s = w / W`` has its pixel centre ``j`` at image coordinate
+            ``(j + 0.5) / s - 0.5`` (integer pixel centres at both resolutions, so a
+            1/2-resolution map has centre ``j`` at image ``x = 2 j + 0.5``).
+        pix: ``(N, 2)`` image coordinates ``(x, y)``.
+
+    Returns ``(values (C, N), inside (N,) bool)``; ``inside`` is False where the sample
+    needs feature pixels outside the map (such values are meaningless).
+    """
+    C, h, w = feats.shape
+    H, W = image_size
+    fx = (pix[:, 0] + 0.5) * (w / W) - 0.5
+    fy = (pix[:, 1] + 0.5) * (h / H) - 0.5
+    inside = (fx >= 0) & (fx <= w - 1) & (fy >= 0) & (fy <= h - 1) & torch.isfinite(fx) & torch.isfinite(fy)
+    # align_corners=True maps -1/+1 to the centres of the first/last feature pixel.
+    gx = torch.where(inside, fx, torch.zeros_like(fx)) * (2.0 / max(w - 1, 1)) - 1.0
+    gy = torch.where(inside, fy, torch.zeros_like(fy)) * (2.0 / max(h - 1, 1)) - 1.0
+    grid = torch.stack([gx, gy], dim=-1).view(1, 1, -1, 2)
+    vals = F.grid_sample(feats.unsqueeze(0), grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    return vals.view(C, -1), inside
+
+
+def cosine(a: torch.Tensor, b: torch.Tensor, dim: int = 0) -> torch.Tensor:
+    """Cosine similarity along ``dim``; 0 where either vector is (numerically) zero."""
+    num = (a * b).sum(dim)
+    den = torch.sqrt((a * a).sum(dim) * (b * b).sum(dim))
+    return num / den.clamp_min(COS_EPS)
+
+
+def gcf_loss(
+    depth_ref: torch.Tensor,
+    K_ref,
+    world_to_cam_ref,
+    feats_ref: torch.Tensor,
+    sources: Sequence[tuple],
+    mask: torch.Tensor | None = None,
+    ref_image_size: tuple[int, int] | None = None,
+    return_terms: bool = False,
+):
+    """Geometric-consistent feature loss L_gcf (GCGS Eq. 4-9), differentiable in depth.
+
+    For each reference pixel p (integer centre) with valid depth, the surface point is
+    ``x = O_ref + z(p) K_ref^-1 (p, 1)`` in the camera frame, i.e. Eq. 4's
+    ``O_ref + D(p) d(p)`` with the unit ray d and ``D = z |K^-1 (p, 1)|`` (``depth_ref`` is
+    camera-frame z, as rendered). For each source view i: ``v_ref``, ``v_i`` are the unit
+    vectors from the camera centres to x, ``w = max(0, v_ref . v_i)``, ``p_i`` the
+    projection of x, and the term is ``w (1 - cos(f_ref(p), f_i(p_i)))`` with bilinear
+    feature sampling (:func:`sample_features`). A point behind a source camera or
+    projecting outside its feature map contributes nothing for that source.
+
+    Args:
+        depth_ref: ``(H, W)`` camera-frame z in mm; pixels with ``z <= 0`` or non-finite z
+            are not points.
+        K_ref, world_to_cam_ref: ``(3, 3)`` intrinsics at ``(H, W)``, ``(4, 4)`` world(mm)
+            -> camera (numpy or torch).
+        feats_ref: ``(C, h, w)`` reference features (any scale, see :func:`sample_features`).
+        sources: ``[(K_i, world_to_cam_i, feats_i, (H_i, W_i)), ...]``; the image size may
+            be omitted (3-tuples) when it equals ``(H, W)``.
+        mask: optional ``(H, W)`` bool, the reference pixels to use.
+        ref_image_size: image size ``feats_ref`` refers to, default ``(H, W)``.
+        return_terms: also return the per-point sum over sources ``(N,)`` and the point mask.
+
+    Returns the mean over the N valid reference points of ``sum_i w (1 - cos)`` (0 when
+    there is none).
+    """
+    H, W = depth_ref.shape
+    z = depth_ref.reshape(-1)
+    valid = torch.isfinite(z) & (z > 0)
+    if mask is not None:
+        valid = valid & torch.as_tensor(mask, device=z.device).reshape(-1).bool()
+    idx = torch.nonzero(valid).squeeze(1)
+    zs = z[idx]
+    ys = torch.div(idx, W, rounding_mode="floor").to(z.dtype)
+    xs = (idx % W).to(z.dtype)
+    K = _t(K_ref, z)
+    T = _t(world_to_cam_ref, z)
+    pix_h = torch.stack([xs, ys, torch.ones_like(xs)], -1)
+    rays = torch.linalg.solve(K, pix_h.t()).t()  # camera-frame rays with z = 1
+    x_cam = rays * zs.unsqueeze(1)
+    R, t = T[:3, :3], T[:3, 3]
+    x_world = (x_cam - t) @ R  # R^T (x_cam - t), row vectors
+    o_ref = -R.t() @ t
+    v_ref = F.normalize(x_world - o_ref, dim=1)
+    f_ref, _ = sample_features(feats_ref.to(z.dtype), torch.stack([xs, ys], -1), ref_image_size or (H, W))
+
+    total = torch.zeros_like(zs)
+    for src in sources:
+        K_i, T_i, feats_i = _t(src[0], z), _t(src[1], z), src[2].to(z.dtype)
+        size_i = tuple(src[3]) if len(src) > 3 else (H, W)
+        R_i, t_i = T_i[:3, :3], T_i[:3, 3]
+        x_i = x_world @ R_i.t() + t_i
+        front = x_i[:, 2] > MIN_Z_MM
+        z_i = torch.where(front, x_i[:, 2], torch.ones_like(x_i[:, 2]))  # avoid 0-division behind
+        uvw = x_i @ K_i.t()
+        p_i = uvw[:, :2] / z_i.unsqueeze(1)
+        f_i, inside = sample_features(feats_i, p_i, size_i)
+        o_i = -R_i.t() @ t_i
+        v_i = F.normalize(x_world - o_i, dim=1)
+        w = (v_ref * v_i).sum(1).clamp_min(0.0)
+        term = w * (1.0 - cosine(f_ref, f_i))
+        total = total + torch.where(front & inside, term, torch.zeros_like(term))
+    loss = total.sum() / max(len(idx), 1)
+    if return_terms:
+        return loss, total, valid.view(H, W)
+    return loss
+
+
+_SOBEL_X = np.array([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
+
+
+def sobel(img: torch.Tensor) -> torch.Tensor:
+    """Sobel derivatives of a ``(C, H, W)`` image: ``(2, C, H, W)`` as (d/dx, d/dy).
+
+    The kernel is divided by 8 so that a linear ramp of slope 1 per pixel gives 1.
+    Borders replicate the edge pixels (gradients there are not used, see below).
+    """
+    C = img.shape[0]
+    kx = torch.as_tensor(_SOBEL_X, dtype=img.dtype, device=img.device)
+    k = torch.stack([kx, kx.t()]).unsqueeze(1).repeat(C, 1, 1, 1)  # (2C, 1, 3, 3)
+    x = F.pad(img.unsqueeze(0), (1, 1, 1, 1), mode="replicate")
+    g = F.conv2d(x, k, groups=C)  # (1, 2C, H, W) ordered (c0 dx, c0 dy, c1 dx, ...)
+    return g.view(C, 2, *img.shape[1:]).transpose(0, 1)
+
+
+def normal_consistency_losses(
+    n_render: torch.Tensor, n_prior: torch.Tensor, valid_mask: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Normal losses of GCGS Eq. 10-12: ``(L_nc, L_ngc)``.
+
+    ``L_nc`` = mean over valid pixels M of ``||n_render - n_prior||_1`` (sum of absolute
+    differences of the 3 components). ``L_ngc`` = mean of ``||S(n_render) - S(n_prior)||^2``
+    over the 6 Sobel derivatives (x and y of each component), taken over the pixels of M
+    whose whole 3x3 neighbourhood is in M, so that no derivative mixes in invalid pixels.
+    Both normal maps are ``(3, H, W)`` in the same (camera) frame; ``valid_mask`` is
+    ``(H, W)`` bool. An empty set gives 0.
+    """
+    if n_render.shape != n_prior.shape or n_render.shape[0] != 3 or n_render.shape[1:] != valid_mask.shape:
+        raise ValueError(
+            f"normal maps must both be (3, H, W) with an (H, W) mask; got {tuple(n_render.shape)}, "
+            f"{tuple(n_prior.shape)}, {tuple(valid_mask.shape)}"
+        )
+    m = valid_mask.to(device=n_render.device).bool()
+    n_prior = n_prior.to(n_render)
+    diff = (n_render - n_prior).abs().sum(0)
+    l_nc = diff[m].sum() / m.sum().clamp_min(1)
+    # 3x3 erosion of M: min-pool is -maxpool(-x); pad with "invalid" at the borders.
+    inner = -F.max_pool2d(-F.pad(m[None, None].float(), (1, 1, 1, 1), value=0.0), 3, stride=1)
+    inner = inner[0, 0] > 0.5
+    g = sobel(n_render) - sobel(n_prior)
+    gsq = (g * g).sum(dim=(0, 1))
+    l_ngc = gsq[inner].sum() / inner.sum().clamp_min(1)
+    return l_nc, l_ngc
