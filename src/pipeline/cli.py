@@ -13,6 +13,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "prepare": ("pipeline.stages.prepare", "load, check and resize a DTU-layout scan for training"),
     "synth": ("pipeline.stages.synth", "render a synthetic scene with exact ground truth"),
     "evaluate": ("pipeline.stages.evaluate", "DTU Chamfer distance of a mesh (mm)"),
+    "init": ("pipeline.stages.init", "initial point cloud of a scene (mvs, sfm, mast3r or random)"),
     "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
 }
 

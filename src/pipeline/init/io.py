@@ -57,7 +57,7 @@ _PLY_DTYPE = np.dtype(
         ("confidence", "<f4"),
     ]
 )
-_PLY_TYPES = {"<f4": "float", "u1": "uchar"}
+_PLY_TYPES = {"<f4": "float", "|u1": "uchar"}
 
 
 def _atomic_write_bytes(path: Path, chunks: list[bytes]) -> None:
@@ -67,6 +67,7 @@ def _atomic_write_bytes(path: Path, chunks: list[bytes]) -> None:
         with os.fdopen(fd, "wb") as fh:
             for c in chunks:
                 fh.write(c)
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -161,6 +162,7 @@ def write_depth(path: str | Path, d: DepthMap) -> Path:
             K=np.asarray(d.K, np.float64), world_to_cam=np.asarray(d.world_to_cam, np.float64),
             view_id=np.int64(d.view_id),
         )
+        os.chmod(tmp, 0o644)  # mkstemp creates 0600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -57,23 +58,10 @@ def sphere_depth_range(K: np.ndarray, world_to_cam: np.ndarray, norm_to_world: n
     return np.maximum(near, 1e-3 * radius), far
 
 
-def box_sum(x: torch.Tensor, k: int) -> torch.Tensor:
-    """Sum over a ``k x k`` window (zero outside the image), by separable running sums.
-
-    The running sums are taken in float64: NCC subtracts nearly equal window moments,
-    which float32 running sums over a whole row would not resolve.
-    """
-    p = k // 2
-    x = F.pad(x.double(), (p + 1, p, 0, 0)).cumsum(-1)
-    x = x[..., k:] - x[..., :-k]
-    x = F.pad(x, (0, 0, p + 1, p)).cumsum(-2)
-    return (x[..., k:, :] - x[..., :-k, :]).float()
-
-
-def box_mean(x: torch.Tensor, k: int) -> torch.Tensor:
-    """Mean over a ``k x k`` window; border windows average the pixels they cover."""
-    count = box_sum(torch.ones((1, 1) + tuple(x.shape[-2:])), k)
-    return box_sum(x, k) / count
+def box_mean(x: np.ndarray, k: int) -> np.ndarray:
+    """Mean over a ``k x k`` window of a 2-D float32 array (OpenCV's box filter, which
+    keeps float64 running sums: NCC subtracts nearly equal window moments)."""
+    return cv2.boxFilter(x, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT_101)
 
 
 @dataclass
@@ -130,12 +118,11 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
     inv_planes = np.linspace(1.0 / z_far, 1.0 / z_near, D)  # index 0 = far
 
     t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
-    ref_img = t(grey[ref, y0:y1, x0:x1])[None, None]
+    ref_img = np.ascontiguousarray(grey[ref, y0:y1, x0:x1], dtype=np.float32)
     mu_r = box_mean(ref_img, k)
-    var_r = (box_mean(ref_img * ref_img, k) - mu_r * mu_r).clamp_min(0.0)
-    std_r = var_r.sqrt()
-    near_t = t(np.nan_to_num(near, nan=np.inf).reshape(h, w))
-    far_t = t(np.nan_to_num(far, nan=-np.inf).reshape(h, w))
+    var_r = np.maximum(box_mean(ref_img * ref_img, k) - mu_r * mu_r, 0.0)
+    near_b = np.nan_to_num(near, nan=np.inf).reshape(h, w)
+    far_b = np.nan_to_num(far, nan=-np.inf).reshape(h, w)
     pix_h = t(np.c_[pix, np.ones(len(pix))].T).reshape(3, h, w)
     src_data = []
     for s, (A, b) in zip(srcs, warps):
@@ -143,15 +130,15 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
         smask = scene.masks[s] if scene.masks is not None else np.ones((H, W))
         # Image and mask warped together (one grid_sample); the mask is tested at > 0.5.
         src_data.append((Ap, t(b).view(3, 1, 1), t(np.stack([grey[s], smask]))[None]))
-    count = box_sum(torch.ones((1, 1, h, w)), k)
 
-    cost = torch.empty((D, h, w), dtype=torch.float32)
-    eps = 1e-8
+    cost = np.empty((D, h, w), dtype=np.float32)
+    eps = np.float32(1e-8)
     for c0 in range(0, D, params.chunk):
-        zs = t(1.0 / inv_planes[c0:c0 + params.chunk]).view(-1, 1, 1, 1)
+        z_chunk = 1.0 / inv_planes[c0:c0 + params.chunk]
+        zs = t(z_chunk).view(-1, 1, 1, 1)
         C = zs.shape[0]
-        acc = torch.zeros((C, 1, h, w))
-        cnt = torch.zeros((C, 1, h, w))
+        acc = np.zeros((C, h, w), np.float32)
+        cnt = np.zeros((C, h, w), np.float32)
         for Ap, b, img in src_data:
             q = Ap.unsqueeze(0) * zs + b.unsqueeze(0)  # (C, 3, h, w)
             z = q[:, 2:3]
@@ -159,24 +146,24 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
             v = q[:, 1:2] / z
             # align_corners=True: normalised -1 / +1 are the centres of the first / last pixel.
             grid = torch.cat([u / (W - 1) * 2 - 1, v / (H - 1) * 2 - 1], 1).permute(0, 2, 3, 1)
-            warped = F.grid_sample(img.expand(C, 2, H, W), grid, mode="bilinear", padding_mode="border", align_corners=True)
-            S, in_mask = warped[:, :1], warped[:, 1:] > 0.5
-            inside = (z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
-            moments = box_sum(torch.cat([S, S * S, ref_img * S], 1), k) / count
-            mu_s = moments[:, :1]
-            var_s = (moments[:, 1:2] - mu_s * mu_s).clamp_min(0.0)
-            cov = moments[:, 2:3] - mu_r * mu_s
-            ncc = cov / torch.sqrt(var_r * var_s + eps)
-            seen = inside.float()
-            # A point that the source sees outside its object mask cannot be on the object.
-            ncc = torch.where(in_mask, ncc, torch.full_like(ncc, -1.0))
-            acc += ncc * seen
+            warped = F.grid_sample(img.expand(C, 2, H, W), grid, mode="bilinear", padding_mode="border",
+                                   align_corners=True).numpy()
+            seen = ((z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1))[:, 0].numpy()
+            for c in range(C):
+                S = warped[c, 0]
+                mu_s = box_mean(S, k)
+                var_s = np.maximum(box_mean(S * S, k) - mu_s * mu_s, 0.0)
+                ncc = (box_mean(ref_img * S, k) - mu_r * mu_s) / np.sqrt(var_r * var_s + eps)
+                # A point that the source sees outside its object mask cannot be on the object.
+                ncc[warped[c, 1] <= 0.5] = -1.0
+                acc[c] += np.where(seen[c], ncc, 0.0)
             cnt += seen
-        score = torch.where(cnt > 0, acc / cnt.clamp_min(1.0), torch.full_like(acc, -1.0))[:, 0]
+        score = np.where(cnt > 0, acc / np.maximum(cnt, 1.0), -1.0)
         # Hypotheses outside the sphere interval of a pixel's own ray cannot be the object.
-        outside = (zs[:, 0] < near_t.unsqueeze(0)) | (zs[:, 0] > far_t.unsqueeze(0))
-        cost[c0:c0 + C] = torch.where(outside, torch.full_like(score, -1.0), score)
+        outside = (z_chunk[:, None, None] < near_b) | (z_chunk[:, None, None] > far_b)
+        cost[c0:c0 + C] = np.where(outside, -1.0, score)
 
+    cost = torch.from_numpy(cost)
     best_score, best = cost.max(0)
     idx = best.clamp(1, D - 2)
     c_m = cost.gather(0, (idx - 1).unsqueeze(0))[0]
@@ -194,7 +181,7 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
         mask[y0:y1, x0:x1]
         & interior.numpy()
         & (best_score.numpy() >= params.min_ncc)
-        & (std_r[0, 0].numpy() >= params.min_std)
+        & (np.sqrt(var_r) >= params.min_std)
     )
     out.depth_mm[y0:y1, x0:x1] = np.where(valid, depth, 0.0)
     out.score[y0:y1, x0:x1] = np.where(valid, best_score.numpy(), -1.0)

@@ -1,0 +1,20 @@
+"""The init stage's backends: a dense (or sparse) point cloud from the input views and
+their known cameras. Each backend module provides ``run(scene, cfg) -> InitResult``;
+file formats are in :mod:`pipeline.init.io` and ``docs/init.md``."""
+from __future__ import annotations
+
+import importlib
+
+BACKEND_MODULES = {
+    "mvs": "pipeline.init.mvs",
+    "sfm": "pipeline.init.sfm",
+    "mast3r": "pipeline.init.mast3r",
+    "random": "pipeline.init.random_init",
+}
+
+
+def run_backend(name: str, scene, cfg):
+    """Run backend ``name`` on ``scene`` with an :class:`~pipeline.config.InitConfig`."""
+    if name not in BACKEND_MODULES:
+        raise ValueError(f"unknown init backend {name!r} (have {', '.join(BACKEND_MODULES)})")
+    return importlib.import_module(BACKEND_MODULES[name]).run(scene, cfg)
