@@ -50,7 +50,9 @@ class GroundTruth:
         return np.around((points_mm - self.bb_mm[0]) / self.res_mm).astype(np.int64)
 
     def above_plane(self, points_mm: np.ndarray) -> np.ndarray:
-        return points_mm @ self.plane[:3] + self.plane[3] > 0
+        """``[x, y, z, 1] . P > 0``, per coordinate (no BLAS call: see ``cull_vertices``)."""
+        P = self.plane
+        return points_mm[:, 0] * P[0] + points_mm[:, 1] * P[1] + points_mm[:, 2] * P[2] + P[3] > 0
 
 
 def paths(gt_dir: str | Path, scan_id: int) -> dict[str, Path]:
