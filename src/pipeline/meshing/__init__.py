@@ -1,0 +1,1 @@
+"""Meshing: TSDF fusion of depth maps (mm) into cleaned triangle meshes."""
