@@ -136,6 +136,12 @@ def test_empty_or_degenerate_mesh_is_an_error(ground_truth, V, F, match):
         dtu_eval.evaluate_mesh(V, F, ground_truth, NO_CULL, log=None)
 
 
+def test_bad_parameters_are_rejected(ground_truth):
+    V, F, _ = sphere(resolution=10)
+    with pytest.raises(ValueError, match="sample_spacing_mm"):
+        dtu_eval.evaluate_mesh(V, F, ground_truth, EvaluateConfig(cull_views="none", sample_spacing_mm=0), log=None)
+
+
 # --- culling --------------------------------------------------------------------------------
 
 
@@ -257,6 +263,9 @@ def test_cli_errors_name_the_problem(tmp_path, capsys):
     assert "points_only.ply: has no triangles" in capsys.readouterr().err
     assert main(["evaluate", "--mesh", str(tmp_path / "missing.ply"), *args]) == 1
     assert "missing.ply: file not found" in capsys.readouterr().err
+    (tmp_path / "garbage.ply").write_bytes(b"not a mesh")
+    assert main(["evaluate", "--mesh", str(tmp_path / "garbage.ply"), *args]) == 1
+    assert "garbage.ply: no vertices read" in capsys.readouterr().err
     assert main(["evaluate", "--mesh", str(tmp_path / "points_only.ply"), "--gt", str(tmp_path), *args]) == 1
     assert "ObsMask" in capsys.readouterr().err
     assert not out.exists()

@@ -122,7 +122,7 @@ def run(args: argparse.Namespace) -> int:
         peak_mib = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024
         metrics = json.loads((tmp / "metrics.json").read_text())
 
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True).stdout.strip()
     report = {
         "benchmark": "gcgs evaluate (DTU Chamfer), one child process",
         "mesh_vertices": len(V),

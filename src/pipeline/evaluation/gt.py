@@ -22,7 +22,7 @@ import numpy as np
 import scipy.io
 import scipy.ndimage
 
-from pipeline.evaluation.sampling import check_mesh, radius_downsample, sample_mesh
+from pipeline.evaluation.sampling import MeshError, check_mesh, radius_downsample, sample_mesh
 
 # The official files are named "_10" after the 10 mm margin of their observation mask.
 # With one voxel of dilation the margin here is one voxel, so 10 mm voxels match it.
@@ -128,7 +128,10 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: file not found")
     m = o3d.io.read_triangle_mesh(str(path))
-    return np.asarray(m.vertices, dtype=np.float64), np.asarray(m.triangles, dtype=np.int64)
+    vertices = np.asarray(m.vertices, dtype=np.float64)
+    if len(vertices) == 0:  # open3d returns an empty mesh (and only warns) on read failures
+        raise MeshError(f"{path}: no vertices read (empty, unreadable or unsupported mesh file)")
+    return vertices, np.asarray(m.triangles, dtype=np.int64)
 
 
 # --- reader -------------------------------------------------------------------------------
