@@ -110,6 +110,9 @@ class MASt3RConfig:
     min_conf: float = 1.5  # MASt3R confidence (>= 1) below this -> invalid
     fit_shift: bool = False  # fit depth = s * pred + t instead of s * pred
     match_subsample: int = 4  # pixel stride for the 3D reciprocal nearest-neighbour matches
+    epipolar_px: float = 3.0  # match check against the known epipolar geometry, scene pixels
+    consistency_px: float = 2.0  # geometric consistency of the aligned depth maps, pixels
+    consistency_rel_depth: float = 0.01  # ... and relative depth
     ransac_iters: int = 200
     inlier_rel: float = 0.01  # RANSAC inlier bound on relative depth error
 
