@@ -13,7 +13,7 @@ from pipeline.config import EvaluateConfig
 from pipeline.data import dtu
 from pipeline.evaluation import dtu_eval
 from pipeline.evaluation import gt as gtmod
-from pipeline.evaluation.sampling import MeshError
+from pipeline.evaluation.sampling import MeshError, sample_mesh
 
 CENTRE = np.array([-28.0, -13.0, 641.0])  # scan24's object centre (DTU world, mm)
 RADIUS = 50.0  # a DTU-object-sized ball, 100 mm across
@@ -124,6 +124,16 @@ def test_far_away_mesh_is_reported_undefined(ground_truth):
     assert any("normalised frame" in p for p in m["problems"])
 
 
+def test_bounding_box_patch_is_60_below_and_120_above(ground_truth):
+    bb = ground_truth.bb_mm
+    # 0.1 mm triangles: each leaves exactly one point after the 0.2 mm downsampling.
+    corners = [bb[1] + [0, 0, 90.0], bb[1] + [0, 0, 130.0], bb[0] - [0, 0, 50.0], bb[0] - [0, 0, 70.0]]
+    V = np.concatenate([c + np.array([[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0]]) for c in corners])
+    F = np.arange(len(V)).reshape(-1, 3)
+    m = dtu_eval.evaluate_mesh(V, F, ground_truth, NO_CULL, log=None)
+    assert m["counts"]["data_downsampled"] == 4 and m["counts"]["data_in_bb"] == 2
+
+
 @pytest.mark.parametrize(
     "V, F, match",
     [
@@ -206,6 +216,110 @@ def test_cull_views_from_the_bundled_scan_and_low_resolution_masks(bundled_scan,
     assert half[0].mask.shape == (300, 400)
     np.testing.assert_allclose(half[0].K[0, 0], views[0].K[0, 0] / 2)
     assert (dtu_eval.cull_vertices(pts, half, 24.0) == keep).mean() > 0.99
+
+
+# --- against a transcription of the public script ---------------------------------------------
+
+
+def script_cull(V, views, dilation=24.0):
+    """2DGS's cull_scan: torch grid_sample (nearest, align_corners) of the dilated masks."""
+    import scipy.ndimage
+    import torch
+
+    hom = torch.from_numpy(np.c_[V, np.ones(len(V))].T)
+    sampled = []
+    for v in views:
+        H, W = v.mask.shape
+        cam = torch.from_numpy(v.K @ v.world_to_cam[:3]) @ hom
+        pix = (cam[:2] / (cam[2:] + 1e-6)).T.clone()
+        pix[:, 0] /= W - 1
+        pix[:, 1] /= H - 1
+        pix = (pix - 0.5) * 2
+        valid = ((pix > -1.0) & (pix < 1.0)).all(dim=-1).double()
+        r = dilation * W / 1600  # skimage's disk(r): x^2 + y^2 <= r^2
+        yy, xx = np.mgrid[-int(r): int(r) + 1, -int(r): int(r) + 1]
+        dil = scipy.ndimage.binary_dilation(v.mask, structure=xx**2 + yy**2 <= r**2)
+        grid = torch.nn.functional.grid_sample(torch.from_numpy(dil).double()[None, None], pix[None, None],
+                                               mode="nearest", padding_mode="zeros", align_corners=True)
+        sampled.append(grid[0, -1, 0] + (1.0 - valid))
+    return (torch.stack(sampled, -1) > 0).all(dim=-1).numpy()
+
+
+def public_script(V, F, views, gt_root, scan, seed, thresh=0.2, patch=60.0, max_dist=20.0):
+    """The 2DGS culling + DTU eval.py steps, written the script's way (per-triangle grids,
+    KD-tree radius lists), with sklearn's KD-tree replaced by scipy's and the unseeded
+    shuffle replaced by the seeded permutation."""
+    import scipy.io
+    from scipy.spatial import cKDTree
+    from test_evaluation_gt import script_triangle_samples
+
+    keep = script_cull(V, views)
+    faces = F[keep[F].all(axis=1)]
+    remap = np.cumsum(keep) - 1
+    Vk, Fk = V[keep], remap[faces]
+
+    pts = [script_triangle_samples(*Vk[f], thresh) for f in Fk]
+    data = np.concatenate([Vk, *pts])[np.random.default_rng(seed).permutation(len(Vk) + sum(map(len, pts)))]
+    mask = np.ones(len(data), dtype=bool)
+    for curr, idxs in enumerate(cKDTree(data).query_ball_point(data, thresh)):
+        if mask[curr]:
+            mask[idxs] = False
+            mask[curr] = True
+    data_down = data[mask]
+
+    obs = scipy.io.loadmat(f"{gt_root}/ObsMask/ObsMask{scan}_10.mat")
+    ObsMask, BB, Res = obs["ObsMask"], obs["BB"].astype(np.float32), obs["Res"]
+    inbound = ((data_down >= BB[:1] - patch) & (data_down < BB[1:] + patch * 2)).sum(axis=-1) == 3
+    data_in = data_down[inbound]
+    grid = np.around((data_in - BB[:1]) / Res).astype(np.int32)
+    grid_inbound = ((grid >= 0) & (grid < np.expand_dims(ObsMask.shape, 0))).sum(axis=-1) == 3
+    g = grid[grid_inbound]
+    data_in_obs = data_in[grid_inbound][ObsMask[g[:, 0], g[:, 1], g[:, 2]].astype(bool)]
+
+    stl = np.asarray(o3d.io.read_point_cloud(f"{gt_root}/Points/stl/stl{scan:03}_total.ply").points)
+    d_d2s = cKDTree(stl).query(data_in_obs)[0]
+    plane = scipy.io.loadmat(f"{gt_root}/ObsMask/Plane{scan}.mat")["P"]
+    above = (plane.reshape((1, 4)) * np.c_[stl, np.ones(len(stl))]).sum(-1) > 0
+    d_s2d = cKDTree(data_in).query(stl[above])[0]
+    return d_d2s[d_d2s < max_dist].mean(), d_s2d[d_s2d < max_dist].mean(), keep, len(data_down), len(data_in_obs)
+
+
+def test_culling_matches_the_script_at_image_borders():
+    views = synthetic_views()
+    v = views[1]
+    H, W = v.mask.shape
+    # Points whose pixels cover the image and a 3 px band around it, at 450-550 mm depth.
+    rng = np.random.default_rng(0)
+    px = np.c_[rng.uniform(-3, W + 2, 30000), rng.uniform(-3, H + 2, 30000), np.ones(30000)]
+    cam = (px @ np.linalg.inv(v.K).T) * rng.uniform(450, 550, (30000, 1))
+    pts = (cam - v.world_to_cam[:3, 3]) @ v.world_to_cam[:3, :3]
+    keep = dtu_eval.cull_vertices(pts, [v], 24.0)
+    np.testing.assert_array_equal(keep, script_cull(pts, [v]))
+    border = (px[:, 0] <= 0) | (px[:, 0] >= W - 1) | (px[:, 1] <= 0) | (px[:, 1] >= H - 1)
+    assert keep[border].all() and not keep[~border].all()
+
+
+def test_matches_a_transcription_of_the_public_script(tmp_path):
+    V, F, N = sphere(radius=15.0, resolution=16)
+    # Only the half facing the cameras is observed; the ground cuts the far cap.
+    dense = sample_mesh(V, F, 0.5)
+    gtmod.write_ground_truth(tmp_path, 77, V, F, np.array([0, 0, -1.0, CENTRE[2] + 10]),
+                             observed_points_mm=dense[dense[:, 2] < CENTRE[2]], res_mm=2.0)
+    g = gtmod.read_ground_truth(tmp_path)
+    rng = np.random.default_rng(5)
+    Vd, Fd, _ = sphere(radius=4.0, centre=CENTRE + [0, 30.0, 0], resolution=8)  # culled
+    Vf, Ff, _ = sphere(radius=3.0, centre=CENTRE + [0, 0, -26.0], resolution=8)  # kept, not observed
+    data_V = np.concatenate([V + (1.0 + rng.normal(scale=0.3, size=(len(V), 1))) * N, Vd, Vf])
+    data_F = np.concatenate([F, Fd + len(V), Ff + len(V) + len(Vd)])
+    views = synthetic_views()
+    for v in views:  # silhouettes of the 15 mm ball, so that some data is culled
+        v.mask[:] = ball_mask(v.K, v.world_to_cam, v.mask.shape, radius=15.0)
+    m = dtu_eval.evaluate_mesh(data_V, data_F, g, EvaluateConfig(), views=views, seed=3, log=None)
+    acc, comp, keep, n_down, n_obs = public_script(data_V, data_F, views, tmp_path, 77, seed=3)
+    assert m["counts"]["culled_vertices"] == keep.sum() < len(data_V)
+    assert m["counts"]["data_downsampled"] == n_down and m["counts"]["data_in_obs"] == n_obs
+    assert m["counts"]["data_in_bb"] > 1.3 * n_obs  # the floater and the unobserved half: in the box only
+    assert m["accuracy_mm"] == pytest.approx(acc, rel=1e-9) and m["completeness_mm"] == pytest.approx(comp, rel=1e-9)
 
 
 # --- command line ---------------------------------------------------------------------------
