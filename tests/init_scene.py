@@ -22,7 +22,7 @@ SCAN = REPO / "data" / "raw" / "dtu" / "scan24"
 def spheres_world(scene: Scene) -> list[tuple[np.ndarray, float]]:
     """(centre mm, radius mm) of the two spheres, placed relative to the unit sphere."""
     c, r = scene.norm_to_world[:3, 3], scene.norm_scale_mm
-    return [(c + np.array([0.0, 0.0, 0.0]), 0.35 * r), (c + np.array([0.25, 0.3, 0.25]) * r, 0.15 * r)]
+    return [(c + np.array([0.0, 0.0, 0.0]), 0.35 * r), (c + np.array([0.35, 0.4, 0.3]) * r, 0.15 * r)]
 
 
 def ray_cast(K, w2c, H, W, spheres) -> tuple[np.ndarray, np.ndarray]:

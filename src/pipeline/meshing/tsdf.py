@@ -33,7 +33,7 @@ def fuse_depth_maps(
     voxel_mm: float,
     trunc_mm: float,
     depth_max_mm: float,
-    weight_threshold: float = 1.0,
+    weight_threshold: float = 0.5,
     block_count: int = 40000,
 ) -> Mesh:
     """Integrate ``(N, H, W)`` depth maps (mm, 0 = no data) and extract the zero level set.
@@ -43,7 +43,9 @@ def fuse_depth_maps(
         colors: ``(N, H, W, 3)`` in [0, 1] or ``None``.
         voxel_mm, trunc_mm: voxel size and SDF truncation (mm).
         depth_max_mm: depths beyond this are ignored.
-        weight_threshold: voxels integrated fewer times are not meshed (1 = seen once).
+        weight_threshold: voxels with less integration weight are not meshed; each view adds
+            weight 1, and Open3D meshes weights strictly above the threshold, so 0.5 keeps
+            every voxel seen at least once.
     """
     import open3d as o3d
     import open3d.core as o3c
@@ -81,7 +83,10 @@ def fuse_depth_maps(
         else:
             vbg.integrate(blocks, depth, intr, extr, depth_scale=1.0, depth_max=float(depth_max_mm),
                           trunc_voxel_multiplier=float(trunc_mm / voxel_mm))
-    mesh = vbg.extract_triangle_mesh(weight_threshold=float(weight_threshold)).to_legacy()
+    try:
+        mesh = vbg.extract_triangle_mesh(weight_threshold=float(weight_threshold)).to_legacy()
+    except RuntimeError as exc:  # Open3D fails on an empty extraction instead of returning nothing
+        raise ValueError(f"fuse_depth_maps: no surface above weight {weight_threshold} ({exc})") from exc
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     tris = np.asarray(mesh.triangles, dtype=np.int64)
     cols = np.asarray(mesh.vertex_colors, dtype=np.float64) if with_color and mesh.has_vertex_colors() else None

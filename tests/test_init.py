@@ -1,0 +1,280 @@
+"""The init stage: file formats, every backend on an analytic scene, the ONNX path, the CLI
+and its failure modes. Scenes are small (<= 200x150) to keep this file fast."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from init_scene import distance_to_spheres, make_scene
+from mast3r_helpers import FakeMASt3R, WrongOutputName, WrongRank, export, pair_scale
+from pipeline import geometry
+from pipeline.cli import main
+from pipeline.config import InitConfig
+from pipeline.data.dtu import write_scene
+from pipeline.init import mast3r, mvs, random_init, sfm
+from pipeline.init.fusion import check_consistency, voxel_downsample
+from pipeline.init.io import (DepthMap, InitFormatError, PointCloud, read_depth, read_ply, write_depth,
+                              write_ply)
+from pipeline.onnx_models import ModelError
+
+
+@pytest.fixture(scope="module")
+def spheres():
+    return make_scene(200, 150)
+
+
+@pytest.fixture(scope="module")
+def mvs_result(spheres):
+    return mvs.run(spheres[0], InitConfig())
+
+
+def _write(scene, root: Path) -> Path:
+    ids = scene.view_ids
+    return write_scene(root, images=dict(zip(ids, scene.images)), K=dict(zip(ids, scene.K)),
+                       world_to_cam=dict(zip(ids, scene.world_to_cam)), norm_to_world=scene.norm_to_world,
+                       masks=dict(zip(ids, scene.masks)))
+
+
+# ---------------------------------------------------------------- formats
+
+def test_ply_round_trip_keeps_confidence(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 50
+    normals = rng.normal(size=(n, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cloud = PointCloud(rng.normal(size=(n, 3)) * 100, rng.random((n, 3)).astype(np.float32),
+                       normals.astype(np.float32), rng.random(n).astype(np.float32))
+    back = read_ply(write_ply(tmp_path / "p.ply", cloud))
+    np.testing.assert_allclose(back.points_mm, cloud.points_mm, rtol=1e-6, atol=1e-4)
+    np.testing.assert_allclose(back.normals, cloud.normals, atol=1e-6)
+    np.testing.assert_allclose(back.colors, np.round(cloud.colors * 255) / 255, atol=1e-6)
+    np.testing.assert_array_equal(back.confidence, cloud.confidence)
+    import open3d as o3d  # other tools can read the file too
+    assert len(o3d.io.read_point_cloud(str(tmp_path / "p.ply")).points) == n
+
+
+def test_truncated_ply_and_corrupt_depth_name_the_file(tmp_path):
+    cloud = PointCloud(np.zeros((4, 3)), np.zeros((4, 3), np.float32), np.tile([0, 0, 1.0], (4, 1)).astype(np.float32),
+                       np.ones(4, np.float32))
+    p = write_ply(tmp_path / "p.ply", cloud)
+    p.write_bytes(p.read_bytes()[:-10])
+    with pytest.raises(InitFormatError, match=r"p\.ply.*truncated"):
+        read_ply(p)
+    bad = tmp_path / "023.npz"
+    bad.write_bytes(b"not a zip")
+    with pytest.raises(InitFormatError, match=r"023\.npz"):
+        read_depth(bad)
+
+
+def test_depth_round_trip_zeroes_invalid(tmp_path):
+    d = np.full((3, 4), 500.0, np.float32)
+    valid = np.ones((3, 4), bool)
+    valid[0, 0] = False
+    dm = DepthMap(23, d, np.full((3, 4), 0.5, np.float32), valid, np.eye(3), np.eye(4))
+    back = read_depth(write_depth(tmp_path / "023.npz", dm))
+    assert back.view_id == 23 and back.depth_mm[0, 0] == 0 and back.confidence[0, 0] == 0
+    assert back.depth_mm[1, 1] == 500.0 and back.valid.sum() == 11
+
+
+# ---------------------------------------------------------------- geometry pieces
+
+def test_sphere_depth_range_brackets_the_sphere(spheres):
+    scene, _ = spheres
+    c = scene.norm_to_world[:3, 3]
+    px, z = geometry.project(scene.K[0], scene.world_to_cam[0], c[None])
+    near, far = mvs.sphere_depth_range(scene.K[0], scene.world_to_cam[0], scene.norm_to_world, px)
+    # Through the centre the chord is a diameter (ray almost along z: z-extent ~ 2 r cos).
+    ray = np.linalg.inv(scene.K[0]) @ np.r_[px[0], 1.0]
+    cos = 1.0 / np.linalg.norm(ray)
+    assert far[0] - near[0] == pytest.approx(2 * scene.norm_scale_mm * cos, rel=1e-6)
+    assert near[0] < z[0] < far[0]
+    near2, _ = mvs.sphere_depth_range(scene.K[0], scene.world_to_cam[0], scene.norm_to_world, np.array([[-1e5, -1e5]]))
+    assert np.isnan(near2[0])
+
+
+def test_consistency_rejects_a_corrupted_view(spheres):
+    scene, gt = spheres
+    depth = np.where(np.isfinite(gt), gt, 0.0).astype(np.float32)
+    valid = np.isfinite(gt)
+    depth[1] *= 1.02  # 2% off: about 13 mm at this distance
+    views = check_consistency(depth, valid, scene.K, scene.world_to_cam, scene.images, InitConfig().consistency)
+    # Views 0 and 2 agree with each other, view 1 with nobody (but a few silhouette pixels
+    # whose scaled depth happens to land on the other sphere).
+    assert views[1].valid.sum() < 0.01 * valid[1].sum()
+    assert views[0].valid.sum() > 0.5 * valid[0].sum()
+    assert views[0].count.max() == 1
+
+
+def test_voxel_downsample_averages_within_voxels():
+    p = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.5, 0.2, 0.2]])
+    a = np.array([1.0, 3.0, 5.0])
+    q, b = voxel_downsample(p, 1.0, a)
+    order = np.argsort(q[:, 0])
+    np.testing.assert_allclose(q[order], [[0.2, 0.2, 0.2], [1.5, 0.2, 0.2]])
+    np.testing.assert_allclose(b[order], [2.0, 5.0])
+
+
+# ---------------------------------------------------------------- backends
+
+def test_mvs_cloud_is_on_the_surface(spheres, mvs_result):
+    scene, gt = spheres
+    cloud = mvs_result.cloud
+    d = distance_to_spheres(cloud.points_mm, scene)
+    # 200x150: one pixel is ~1.8 mm at the object; sub-plane refinement + averaging.
+    assert len(cloud) > 3000
+    assert np.median(d) < 0.8, np.median(d)
+    assert np.percentile(d, 90) < 3.0
+    # Normals: outward sphere normals (points face the cameras).
+    c, r = (scene.norm_to_world[:3, 3], 0.35 * scene.norm_scale_mm)
+    on = np.abs(np.linalg.norm(cloud.points_mm - c, axis=1) - r) < 1.0
+    cos = np.einsum("ij,ij->i", cloud.normals[on], (cloud.points_mm[on] - c) / r)
+    assert np.median(cos) > 0.95
+    assert np.all((cloud.confidence >= 0) & (cloud.confidence <= 1)) and cloud.confidence.mean() > 0.3
+
+
+def test_mvs_depth_maps_are_metric_and_masked(spheres, mvs_result):
+    scene, gt = spheres
+    for i, dm in enumerate(mvs_result.depths):
+        assert dm.view_id == scene.view_ids[i]
+        assert not (dm.valid & ~scene.masks[i]).any()
+        assert dm.valid.sum() > 0.5 * scene.masks[i].sum()
+        rel = np.abs(dm.depth_mm[dm.valid] - gt[i][dm.valid]) / gt[i][dm.valid]
+        assert np.median(rel) < 2e-3, np.median(rel)  # ~0.1 px of disparity at 200x150
+
+
+def test_mvs_rejects_textureless_views(spheres):
+    scene, _ = spheres
+    flat = type(scene)(**{**scene.__dict__, "images": np.full_like(scene.images, 0.5)})
+    res = mvs.sweep_view(flat, 0, InitConfig().mvs)
+    assert res.valid.sum() == 0
+
+
+def test_sfm_points_are_on_the_surface(spheres):
+    scene, _ = spheres
+    res = sfm.run(scene, InitConfig())
+    d = distance_to_spheres(res.cloud.points_mm, scene)
+    assert len(res.cloud) > 100
+    assert np.median(d) < 1.0, np.median(d)
+    assert res.info["mean_reproj_px"] < 0.5 and res.depths is None
+
+
+def test_random_is_uniform_in_the_unit_sphere(spheres):
+    scene, _ = spheres
+    cfg = InitConfig(random_points=20000)
+    cloud = random_init.run(scene, cfg).cloud
+    r = np.linalg.norm(cloud.points_mm - scene.norm_to_world[:3, 3], axis=1) / scene.norm_scale_mm
+    assert len(cloud) == 20000 and r.max() <= 1.0
+    assert np.mean(r**3) == pytest.approx(0.5, abs=0.02)  # uniform in volume: r^3 ~ U(0, 1)
+    np.testing.assert_array_equal(random_init.run(scene, cfg).cloud.points_mm, cloud.points_mm)  # seeded
+
+
+# ---------------------------------------------------------------- mast3r through onnxruntime
+
+@pytest.fixture(scope="module")
+def small_scene():
+    return make_scene(160, 120)
+
+
+@pytest.fixture(scope="module")
+def fake_model(small_scene, tmp_path_factory):
+    return export(FakeMASt3R(small_scene[0], (128, 96)), (128, 96), tmp_path_factory.mktemp("m") / "mast3r.onnx")
+
+
+def test_mast3r_recovers_metric_depth(small_scene, fake_model):
+    scene, gt = small_scene
+    cfg = InitConfig()
+    cfg.mast3r.model = str(fake_model)
+    res = mast3r.run(scene, cfg)
+    assert len(res.info["fits"]) == 6
+    for f in res.info["fits"]:
+        i, j = scene.view_ids.index(f["pair"][0]), scene.view_ids.index(f["pair"][1])
+        assert f["scale"] == pytest.approx(1.0 / pair_scale(i, j), rel=5e-3)
+    for i, dm in enumerate(res.depths):
+        assert dm.valid.sum() > 0.5 * scene.masks[i].sum()
+        rel = np.abs(dm.depth_mm[dm.valid] - gt[i][dm.valid]) / gt[i][dm.valid]
+        assert np.median(rel) < 2e-3
+    d = distance_to_spheres(res.cloud.points_mm, scene)
+    assert np.median(d) < 0.6
+
+
+def test_mast3r_fit_with_shift():
+    rng = np.random.default_rng(1)
+    zp = rng.uniform(0.5, 1.5, 400)
+    zm = 600.0 * zp + 40.0
+    zm[:40] *= 1.3  # outliers
+    s, t, inl = mast3r.robust_fit(zp, zm, True, 200, 0.01, rng)
+    assert s == pytest.approx(600.0, rel=1e-9) and t == pytest.approx(40.0, abs=1e-6)
+    assert inl.sum() == 360
+
+
+@pytest.mark.parametrize("module, outputs, message", [
+    (WrongOutputName(), ("pts3d", "conf_1", "pts3d_2", "conf_2"), "missing output 'pts3d_1'"),
+    (WrongRank(), ("pts3d_1", "conf_1", "pts3d_2", "conf_2"), "output 'conf_1' has rank 4"),
+])
+def test_mast3r_wrong_contract_is_named(small_scene, tmp_path, module, outputs, message):
+    path = export(module, (128, 96), tmp_path / "bad.onnx", outputs=outputs)
+    cfg = InitConfig()
+    cfg.mast3r.model = str(path)
+    with pytest.raises(ModelError, match=message):
+        mast3r.run(small_scene[0], cfg)
+
+
+def test_mast3r_corrupt_or_missing_model(small_scene, tmp_path):
+    bad = tmp_path / "corrupt.onnx"
+    bad.write_bytes(b"\x08\x07garbage" * 10)
+    cfg = InitConfig()
+    cfg.mast3r.model = str(bad)
+    with pytest.raises(ModelError, match=r"corrupt\.onnx: not a loadable ONNX model"):
+        mast3r.run(small_scene[0], cfg)
+    cfg.mast3r.model = None
+    with pytest.raises(ModelError, match="needs a MASt3R ONNX model"):
+        mast3r.run(small_scene[0], cfg)
+
+
+# ---------------------------------------------------------------- the CLI stage
+
+def test_cli_mast3r_writes_everything(small_scene, fake_model, tmp_path):
+    scene_dir = _write(small_scene[0], tmp_path / "scene")
+    out = tmp_path / "init"
+    assert main(["init", "--scene", str(scene_dir), "--backend", "mast3r", "--model", str(fake_model),
+                 "--out-dir", str(out)]) == 0
+    cloud = read_ply(out / "points.ply")
+    assert len(cloud) > 1000
+    for v in small_scene[0].view_ids:
+        dm = read_depth(out / "depth" / f"{v:03d}.npz")
+        assert dm.view_id == v and dm.valid.any()
+    info = json.loads((out / "init.json").read_text())
+    assert info["backend"] == "mast3r" and info["num_points"] == len(cloud) and info["time_s"] > 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["init", "scene"]  # no temp folders left
+
+
+def test_cli_bad_model_leaves_nothing(small_scene, tmp_path, capsys):
+    scene_dir = _write(small_scene[0], tmp_path / "scene")
+    bad = tmp_path / "m.onnx"
+    bad.write_bytes(b"nope")
+    out = tmp_path / "init"
+    assert main(["init", "--scene", str(scene_dir), "--backend", "mast3r", "--model", str(bad),
+                 "--out-dir", str(out)]) == 1
+    assert "m.onnx: not a loadable ONNX model" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["m.onnx", "scene"]
+
+
+def test_cli_bad_scene_is_named(tmp_path, capsys):
+    scene_dir = tmp_path / "scene"
+    (scene_dir / "image").mkdir(parents=True)
+    (scene_dir / "image" / "000000.png").write_bytes(b"not a png")
+    assert main(["init", "--scene", str(scene_dir), "--backend", "sfm", "--out-dir", str(tmp_path / "o")]) == 1
+    assert "no camera file" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_cli_replaces_previous_output(small_scene, tmp_path):
+    scene_dir = _write(small_scene[0], tmp_path / "scene")
+    out = tmp_path / "init"
+    out.mkdir()
+    (out / "stale.txt").write_text("old")
+    assert main(["init", "--scene", str(scene_dir), "--backend", "sfm", "--out-dir", str(out)]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["init.json", "points.ply"]  # no depth for sfm
