@@ -69,6 +69,8 @@ def fuse_depth_maps(
                                         attr_channels=tuple(channels), voxel_size=float(voxel_mm),
                                         block_resolution=8, block_count=block_count, device=device)
     for i in range(len(depths_mm)):
+        if not np.any((depths_mm[i] > 0) & (depths_mm[i] < depth_max_mm)):
+            continue  # Open3D aborts on a depth map that touches no block
         depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depths_mm[i])))
         intr = o3c.Tensor(np.asarray(K[i], np.float64).copy())
         intr[0, 1] = 0.0  # Open3D has no skew
