@@ -14,6 +14,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("pipeline.stages.synth", "render a synthetic scene with exact ground truth"),
     "evaluate": ("pipeline.stages.evaluate", "DTU Chamfer distance of a mesh (mm)"),
     "init": ("pipeline.stages.init", "initial point cloud of a scene (mvs, sfm, mast3r or random)"),
+    "tsdf": ("pipeline.stages.tsdf", "TSDF-fuse an init folder's depth maps into a cleaned mesh (mm)"),
     "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
 }
 
