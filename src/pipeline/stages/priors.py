@@ -1,0 +1,167 @@
+"""``gcgs priors``: per-view normal and feature priors of a prepared scene (docs/priors.md).
+
+Writes ``OUT/normals/{view:03d}.npz``, ``OUT/features/{view:03d}.npz`` and
+``OUT/priors.json`` into a temporary sibling folder renamed into place at the end. Only
+what the loss uses is computed: no features when ``loss.lambda_gcf`` is 0, no normals
+when ``loss.lambda_nor`` is 0.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.config import LossConfig, PriorsConfig, load_params, section
+from pipeline.data.dtu import load_scene
+from pipeline.data.scene import Scene, SceneError
+from pipeline.onnx_models import DSINE_CONTRACT, VISMVSNET_FEATURES_CONTRACT, load_onnx
+from pipeline.priors import features as feat
+from pipeline.priors import normals as nrm
+from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, write_features, write_normals
+
+
+def effective_backends(cfg: PriorsConfig, loss: LossConfig) -> tuple[str, str]:
+    """``(normals, features)`` backends actually run: ``none`` where the loss weight is 0."""
+    return (cfg.normals if loss.lambda_nor > 0 else "none", cfg.features if loss.lambda_gcf > 0 else "none")
+
+
+def check_scene(scene: Scene) -> None:
+    where = scene.source or scene.name
+    if not np.all(np.isfinite(scene.images)):
+        raise SceneError(f"{where}: images have non-finite values")
+    if not (np.all(np.isfinite(scene.K)) and np.all(np.isfinite(scene.world_to_cam))):
+        raise SceneError(f"{where}: cameras have non-finite values")
+
+
+def load_init_depths(init_dir: Path | None, scene: Scene) -> list:
+    """The init stage's depth maps of every view, checked against the scene's cameras."""
+    from pipeline.init.io import depth_path, read_depth
+
+    if init_dir is None:
+        raise SceneError("priors.normals = default needs the init stage's depth maps: pass --init-dir")
+    out = []
+    for v, K, T in zip(scene.view_ids, scene.K, scene.world_to_cam):
+        path = depth_path(init_dir, v)
+        if not path.is_file():
+            raise SceneError(
+                f"{path}: missing depth map for view {v} (default normals need a depth-based init backend, "
+                "mvs or mast3r; or set priors.normals to dsine or none)"
+            )
+        d = read_depth(path)
+        if d.depth_mm.shape != (scene.height, scene.width):
+            raise SceneError(f"{path}: depth map is {d.depth_mm.shape[1]}x{d.depth_mm.shape[0]}, "
+                             f"scene {scene.source} is {scene.width}x{scene.height}")
+        if not (np.allclose(d.K, K, rtol=1e-6, atol=1e-6) and np.allclose(d.world_to_cam, T, rtol=1e-6, atol=1e-6)):
+            raise SceneError(f"{path}: camera differs from view {v} of {scene.source} (stale init output?)")
+        if not d.valid.any():
+            raise SceneError(f"{path}: no valid depth pixel")
+        out.append(d)
+    return out
+
+
+def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, loss: LossConfig,
+               init_dir: str | Path | None = None) -> dict:
+    """Compute the configured priors of every view and write them atomically; returns
+    the facts written to priors.json (timings, peak RSS of this process)."""
+    t0 = time.perf_counter()
+    out_dir = Path(out_dir)
+    normals_backend, features_backend = effective_backends(cfg, loss)
+    scene = load_scene(scene_dir, view_ids=None)
+    check_scene(scene)
+    # Everything that can fail on bad input is checked before any output is written.
+    depths = load_init_depths(Path(init_dir) if init_dir else None, scene) if normals_backend == "default" else None
+    dsine = load_onnx(cfg.dsine_model, DSINE_CONTRACT) if normals_backend == "dsine" else None
+    vis = load_onnx(cfg.vismvsnet_model, VISMVSNET_FEATURES_CONTRACT) if features_backend == "vismvsnet" else None
+    timings = {"load_s": round(time.perf_counter() - t0, 3), "normals_s": 0.0, "features_s": 0.0}
+    per_view = {}
+
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    try:
+        for i, v in enumerate(scene.view_ids):
+            where = f"{scene.source} view {v}"
+            facts = {}
+            t = time.perf_counter()
+            if normals_backend != "none":
+                if normals_backend == "default":
+                    d = depths[i]
+                    n, ok = nrm.normals_from_depth(
+                        d.depth_mm, d.valid, scene.K[i], step_px=cfg.normal_step_px,
+                        smooth_sigma_px=cfg.normal_smooth_sigma_px, smooth_sigma_mm=cfg.normal_smooth_sigma_mm,
+                        max_slant_deg=cfg.normal_max_slant_deg, where=where)
+                else:
+                    n, ok = nrm.dsine_normals(dsine, scene.images[i], scene.K[i], where=where)
+                write_normals(normals_path(tmp, v), NormalPrior(v, n, ok, normals_backend))
+                facts["normals_valid_fraction"] = round(float(ok.mean()), 4)
+            t1 = time.perf_counter()
+            if features_backend != "none":
+                if features_backend == "default":
+                    f = feat.default_features(scene.images[i], patch=cfg.feature_patch,
+                                              scales=tuple(cfg.feature_scales),
+                                              min_contrast=cfg.feature_min_contrast, where=where)
+                else:
+                    f = feat.vismvsnet_features(vis, scene.images[i], where=where)
+                size = feat.feature_image_size(scene.height, scene.width)
+                write_features(features_path(tmp, v), FeaturePrior(v, f, size, features_backend), cfg.feature_dtype)
+                facts["feature_shape"] = list(f.shape)
+            t2 = time.perf_counter()
+            timings["normals_s"] += t1 - t
+            timings["features_s"] += t2 - t1
+            per_view[str(v)] = facts
+        info = {
+            "scene": str(scene_dir),
+            "init_dir": str(init_dir) if init_dir else None,
+            "views": scene.view_ids,
+            "size": [scene.width, scene.height],
+            "normals": normals_backend,
+            "features": features_backend,
+            "lambda_nor": loss.lambda_nor,
+            "lambda_gcf": loss.lambda_gcf,
+            "per_view": per_view,
+            "config": dataclasses.asdict(cfg),
+            **{k: round(v, 3) for k, v in timings.items()},
+            "time_s": round(time.perf_counter() - t0, 3),
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        }
+        (tmp / "priors.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
+        os.chmod(tmp, 0o755)  # mkdtemp creates 0700
+        if out_dir.exists():
+            shutil.rmtree(out_dir)
+        os.replace(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return info
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", required=True, help="prepared scene folder (DTU layout)")
+    p.add_argument("--init-dir", default=None, help="init stage output (depth/ maps), needed by default normals")
+    p.add_argument("--out-dir", required=True, help="output folder (normals/, features/, priors.json)")
+    p.add_argument("--normals", choices=PriorsConfig.NORMALS, default=None, help="default: priors.normals")
+    p.add_argument("--features", choices=PriorsConfig.FEATURES, default=None, help="default: priors.features")
+    p.add_argument("--dsine-model", default=None, help="default: priors.dsine_model")
+    p.add_argument("--vismvsnet-model", default=None, help="default: priors.vismvsnet_model")
+    p.add_argument("--params", default=None, help="params.yaml to read `priors` and `loss` from (default: the repo's)")
+
+
+def run(args: argparse.Namespace) -> int:
+    params = load_params(args.params) if args.params else load_params()
+    cfg = section(PriorsConfig, "priors", params)
+    loss = section(LossConfig, "loss", params)
+    for key in ("normals", "features", "dsine_model", "vismvsnet_model"):
+        if getattr(args, key) is not None:
+            setattr(cfg, key, getattr(args, key))
+    info = run_priors(args.scene, args.out_dir, cfg, loss, init_dir=args.init_dir)
+    print(f"priors: normals {info['normals']} (lambda_nor {loss.lambda_nor}), features {info['features']} "
+          f"(lambda_gcf {loss.lambda_gcf}) for views {info['views']} in {info['time_s']} s "
+          f"(peak RSS {info['peak_rss_mb']} MB) -> {args.out_dir}")
+    return 0

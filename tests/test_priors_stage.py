@@ -1,0 +1,156 @@
+"""The priors stage end to end: real onnxruntime sessions on exported tiny models, the
+default backends against ground truth, loss-weight gating, and clean failures."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from onnx_helpers import FakeVisMVSNet, export_fake_dsine, export_fake_vismvsnet
+from pipeline import cli
+from pipeline.config import PARAMS_PATH
+from pipeline.data import dtu
+from pipeline.init.io import DepthMap, depth_path, write_depth
+from pipeline.priors.io import features_path, normals_path, read_features, read_normals
+
+W, H = 80, 60
+VIEWS = (23, 24, 33)
+
+
+@pytest.fixture(scope="module")
+def setup(tmp_path_factory, bundled_scan):
+    """A rendered relief scene in the DTU layout, its ground-truth depth as the init
+    output, and the two fake ONNX models."""
+    from pipeline.priors.raycast import textured_relief_scene
+
+    root = tmp_path_factory.mktemp("priors")
+    scan = dtu.load_scene(bundled_scan, view_ids=list(VIEWS), resolution=(W, H), with_masks=False)
+    sc = textured_relief_scene(scan.K, scan.world_to_cam, W, H, scan.norm_to_world[:3, 3])
+    scene_dir = dtu.write_scene(root / "scene", images=dict(zip(VIEWS, sc.images)), K=dict(zip(VIEWS, sc.K)),
+                                world_to_cam=dict(zip(VIEWS, sc.world_to_cam)), norm_to_world=scan.norm_to_world,
+                                meta={"name": "relief"})
+    init_dir = root / "init"
+    for v, K, T, d in zip(VIEWS, sc.K, sc.world_to_cam, sc.depth_mm):
+        ok = np.isfinite(d)
+        write_depth(depth_path(init_dir, v), DepthMap(v, np.where(ok, d, 0).astype(np.float32), ok.astype(np.float32), ok, K, T))
+    return {
+        "root": root, "scene": scene_dir, "init": init_dir, "gt": sc,
+        "dsine": export_fake_dsine(root / "dsine.onnx"), "vis": export_fake_vismvsnet(root / "vis.onnx"),
+    }
+
+
+def params_file(tmp_path: Path, **loss) -> Path:
+    params = yaml.safe_load(PARAMS_PATH.read_text())
+    params["loss"].update(loss)
+    p = tmp_path / "params.yaml"
+    p.write_text(yaml.safe_dump(params))
+    return p
+
+
+def run_cli(setup, out, *extra, params=None):
+    args = ["priors", "--scene", str(setup["scene"]), "--init-dir", str(setup["init"]), "--out-dir", str(out)]
+    if params is not None:
+        args += ["--params", str(params)]
+    return cli.main(args + list(extra))
+
+
+def angle_deg(a, b):
+    return np.degrees(np.arccos(np.clip(np.sum(a * b, -1), -1, 1)))
+
+
+def test_default_backends_against_ground_truth(setup, tmp_path):
+    out = tmp_path / "out"
+    assert run_cli(setup, out) == 0
+    gt = setup["gt"]
+    for i, v in enumerate(VIEWS):
+        n = read_normals(normals_path(out, v))
+        assert n.backend == "default" and n.normal_cam.shape == (H, W, 3)
+        hit = np.isfinite(gt.depth_mm[i])
+        assert n.valid.sum() > 0.5 * hit.sum() and not n.valid[~hit].any()
+        # Normals from (exact) depth vs the ray-cast face normals of the mesh.
+        assert np.median(angle_deg(n.normal_cam[n.valid], gt.normal_cam[i][n.valid])) < 1.5
+        f = read_features(features_path(out, v))
+        assert f.features.shape == (50, H // 2, W // 2) and f.image_size == (H, W) and f.backend == "default"
+    assert (out / "priors.json").is_file()
+
+
+def test_onnx_backends_run_through_onnxruntime(setup, tmp_path):
+    out = tmp_path / "out"
+    rc = run_cli(setup, out, "--normals", "dsine", "--features", "vismvsnet",
+                 "--dsine-model", str(setup["dsine"]), "--vismvsnet-model", str(setup["vis"]))
+    assert rc == 0
+    import torch
+
+    from pipeline.priors.features import vismvsnet_input
+
+    scene = dtu.load_scene(setup["scene"], view_ids=None)
+    for i, v in enumerate(VIEWS):
+        n = read_normals(normals_path(out, v))
+        assert n.backend == "dsine" and n.valid.any()
+        np.testing.assert_allclose(np.linalg.norm(n.normal_cam[n.valid], axis=-1), 1.0, atol=1e-5)
+        f = read_features(features_path(out, v))
+        assert f.backend == "vismvsnet" and f.features.shape == (32, H // 2, W // 2)
+        want = FakeVisMVSNet()(torch.from_numpy(vismvsnet_input(scene.images[i]))).detach().numpy()[0]
+        np.testing.assert_allclose(f.features, want, rtol=2e-3, atol=2e-3)  # stored as float16
+
+
+@pytest.mark.parametrize(("loss", "has_normals", "has_features"), [
+    ({"lambda_gcf": 0.0}, True, False),
+    ({"lambda_nor": 0.0}, False, True),
+    ({"lambda_gcf": 0.0, "lambda_nor": 0.0}, False, False),
+])
+def test_zero_loss_weights_skip_work(setup, tmp_path, loss, has_normals, has_features):
+    out = tmp_path / "out"
+    # A missing init dir proves the default normals are not even looked at when unused.
+    init = setup["init"] if has_normals else tmp_path / "no_init"
+    args = ["priors", "--scene", str(setup["scene"]), "--init-dir", str(init), "--out-dir", str(out),
+            "--params", str(params_file(tmp_path, **loss)), "--vismvsnet-model", str(tmp_path / "absent.onnx")]
+    if has_features:
+        args.remove("--vismvsnet-model")
+        args.remove(str(tmp_path / "absent.onnx"))
+    assert cli.main(args) == 0
+    assert (out / "normals").is_dir() == has_normals
+    assert (out / "features").is_dir() == has_features
+    assert (out / "priors.json").is_file()
+
+
+def leftovers(parent: Path, name: str) -> list[Path]:
+    return [p for p in parent.iterdir() if p.name.startswith(f".{name}.")]
+
+
+def test_bad_models_and_scenes_fail_cleanly(setup, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "old.txt").write_text("previous result")
+    bad = tmp_path / "broken.onnx"
+    bad.write_bytes(b"\x08\x01garbage")
+    assert run_cli(setup, out, "--features", "vismvsnet", "--vismvsnet-model", str(bad)) == 1
+    assert "broken.onnx: not a loadable ONNX model" in capsys.readouterr().err
+    # A model with the wrong contract (DSINE file given as the feature extractor).
+    assert run_cli(setup, out, "--features", "vismvsnet", "--vismvsnet-model", str(setup["dsine"])) == 1
+    assert "does not follow the vismvsnet_features contract" in capsys.readouterr().err
+    assert run_cli(setup, out, "--normals", "dsine", "--dsine-model", str(tmp_path / "none.onnx")) == 1
+    assert "none.onnx: dsine model file not found" in capsys.readouterr().err
+    # Default normals without the init depth maps.
+    assert cli.main(["priors", "--scene", str(setup["scene"]), "--init-dir", str(tmp_path / "noinit"),
+                     "--out-dir", str(out)]) == 1
+    assert "noinit/depth/023.npz: missing depth map for view 23" in capsys.readouterr().err
+    assert cli.main(["priors", "--scene", str(tmp_path / "noscene"), "--out-dir", str(out)]) == 1
+    assert "noscene: scene directory not found" in capsys.readouterr().err
+    # The previous output is untouched and no temporary folder is left behind.
+    assert sorted(p.name for p in out.iterdir()) == ["old.txt"]
+    assert leftovers(tmp_path, "out") == []
+
+
+def test_failure_mid_run_leaves_nothing(setup, tmp_path, capsys):
+    """A model whose output is non-finite fails after the first outputs were written to
+    the temporary folder; nothing must appear under the output path."""
+    from onnx_helpers import NaNFeatures
+
+    nan_model = export_fake_vismvsnet(tmp_path / "nan.onnx", NaNFeatures())
+    out = tmp_path / "out"
+    assert run_cli(setup, out, "--features", "vismvsnet", "--vismvsnet-model", str(nan_model)) == 1
+    assert "output 'features' has non-finite values" in capsys.readouterr().err
+    assert not out.exists() and leftovers(tmp_path, "out") == []
