@@ -154,3 +154,19 @@ def test_failure_mid_run_leaves_nothing(setup, tmp_path, capsys):
     assert run_cli(setup, out, "--features", "vismvsnet", "--vismvsnet-model", str(nan_model)) == 1
     assert "output 'features' has non-finite values" in capsys.readouterr().err
     assert not out.exists() and leftovers(tmp_path, "out") == []
+
+
+def test_dvc_stage_declares_what_it_reads():
+    """The stage reruns on its inputs and its own params only: the loss weights that gate
+    it, the priors section, the scene, the init output, models/ and its code."""
+    stages = yaml.safe_load((PARAMS_PATH.parent / "dvc.yaml").read_text())["stages"]
+    do = stages["priors"]["do"]
+    assert stages["priors"]["foreach"] == "${scenes}"
+    assert sorted(do["params"]) == ["loss.lambda_gcf", "loss.lambda_nor", "priors"]
+    assert {"data/scenes/${key}", "data/init/${key}", "models", "src/pipeline/stages/priors.py",
+            "src/pipeline/priors/features.py", "src/pipeline/priors/normals.py", "src/pipeline/priors/io.py",
+            "src/pipeline/onnx_models.py"} <= set(do["deps"])
+    assert do["outs"] == ["data/priors/${key}"]
+    # Backends and model paths come from params.yaml, not from the command line.
+    assert "--normals" not in do["cmd"] and "--features" not in do["cmd"] and "model" not in do["cmd"]
+    assert (PARAMS_PATH.parent / "models").is_dir()  # a DVC dependency must exist
