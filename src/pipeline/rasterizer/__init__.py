@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import torch
 
-from pipeline.rasterizer.project import project
+from pipeline.rasterizer.project import colors_of, project
 from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
 
 BACKENDS = ("cpu", "reference", "cuda")
@@ -51,16 +51,18 @@ def rasterize(
     if surfels.means.device.type != "cpu":
         raise ValueError(f"the {backend} backend needs CPU tensors, got {surfels.means.device}")
 
-    proj = project(surfels, camera, track_means2d=torch.is_grad_enabled())
     if backend == "cpu":
         from pipeline.rasterizer import cpu
 
-        maps, _ = cpu.render(proj, camera)
-    else:
-        from pipeline.rasterizer import reference
+        maps, radii, means2d, _ = cpu.render(
+            surfels.means, surfels.quats, surfels.scales, surfels.opacities, colors_of(surfels, camera), camera, depth_eps
+        )
+        return RenderOutput(*maps, radii=radii, means2d=means2d)
 
-        maps = reference.render(proj, camera, block=reference_block)
-    features, alpha, depth_sum, normal_cam, median, distortion = maps
+    from pipeline.rasterizer import reference
+
+    proj = project(surfels, camera, track_means2d=torch.is_grad_enabled())
+    features, alpha, depth_sum, normal_cam, median, distortion = reference.render(proj, camera, block=reference_block)
     R_wc = camera.world_to_cam[:3, :3].to(normal_cam.dtype)
     return RenderOutput(
         features=features,

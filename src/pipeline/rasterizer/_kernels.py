@@ -1,21 +1,31 @@
-"""numba kernels of the ``cpu`` backend: tile binning, forward, backward, reduction.
+"""numba kernels of the ``cpu`` backend.
 
-Layout: the image is cut into ``TILE x TILE`` tiles. Every visible surfel is listed in
-each tile its support box touches; within a tile the list is front to back (surfels
-are emitted in centre-depth order, so a counting sort by tile keeps that order). A
-tile is processed by one thread, surfel by surfel, touching only the pixels of the
-surfel's box inside the tile, with per-pixel state in small local arrays.
+Pipeline: ``preprocess`` (per surfel: ray transform, facing normal, support box) ->
+tile binning -> ``forward`` -> ``backward`` -> ``reduce_and_chain`` (per surfel:
+sum of its pair gradients, then the chain rule back to means, quats, scales).
 
-The backward recomputes every pair from the surfel parameters with the *same* helper
-and arithmetic as the forward (no fastmath), walks each pixel back to front from its
-last contributor, and writes the gradient that a (tile, surfel) pair receives from all
-pixels of the tile into that pair's own slot. A final pass sums, for each surfel, its
-slots in a fixed order. No atomics and no per-thread buffers: the result is bitwise
+Per-pair algebra. With ``T`` the ray transform (rows ``T_u, T_v, T_w``), the
+intersection ``q = k x l`` of pixel ``(x, y)`` is affine in the pixel:
+``q = x (T_v x T_w) + y (T_w x T_u) + T_u x T_v = adj(T) (x, y, 1)``, and since
+``T_w . q = det T`` the intersection depth is ``z = u T_w0 + v T_w1 + T_w2 = det T / q_2``.
+``rho3 <= rho_max`` reads ``q_0^2 + q_1^2 <= rho_max q_2^2``: a pair that fails both
+``rho3`` and ``rho2`` tests is rejected without a division or an ``exp``.
+
+Layout: the image is cut into ``TILE x TILE`` tiles. Each visible surfel is listed in
+every tile its support box touches; within a tile the list is front to back (surfels
+are emitted in centre-depth order and a counting sort by tile keeps that order). One
+thread renders a tile surfel by surfel, touching only the pixels of the surfel's box
+inside the tile, with the per-pixel state in small local arrays.
+
+The backward recomputes each pair with the *same* helper and arithmetic as the forward
+(no fastmath), so it replays exactly the forward's skips and stop; it walks each pixel
+back to front from its last contributor and writes what a (tile, surfel) pair receives
+from all pixels of its tile into that pair's own slot. The per-surfel sum runs over
+slots in a fixed order. No atomics, no per-thread buffers: results are bitwise
 identical whatever the number of threads or the scheduling.
 
-Arithmetic is float64 inside (inputs may be float32 or float64; outputs and gradients
-take the input dtype). Per-pixel state kept for the backward (transmittance and the
-moment sums) is float64.
+Arithmetic is float64 inside; inputs may be float32 or float64 and outputs/gradients
+take the input dtype. The per-pixel state kept for the backward is float64.
 """
 from __future__ import annotations
 
@@ -27,29 +37,148 @@ from numba import njit, prange
 from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, T_MIN, UV_MAX
 
 TILE = 16
-# Gradient slot layout per (tile, surfel) pair / per surfel.
-G_T = 0  # 9 entries: dL/dT row-major
-G_OPACITY = 9
-G_NORMAL = 10  # 3 entries
-G_FEATURE = 13  # C entries
-G_FIXED = 13
-# Pre-test before exp: rho beyond 2 ln(255 o) (plus rounding slack) cannot reach 1/255.
+
+# Per-surfel geometry (float64) computed by ``preprocess``.
+GEO_AX = 0  # 3: T_v x T_w  (q = x AX + y AY + A0)
+GEO_AY = 3  # 3: T_w x T_u
+GEO_A0 = 6  # 3: T_u x T_v
+GEO_DET = 9  # det T
+GEO_CX = 10  # projected centre (pixels)
+GEO_CY = 11
+GEO_RHO_MAX = 12  # 2 ln(255 o), with rounding slack
+GEO_OPACITY = 13
+GEO_INV_DET = 14  # 1 / det T (z = det / q2, so 1 / z = q2 / det)
+GEO_INV_ZC = 15  # 1 / centre depth (low-pass branch)
+GEO_SIZE = 16
+
+# Gradient slot per (tile, surfel) pair; linear in the pair terms, so slots are summed
+# per surfel before ``_slot_to_dT`` turns them into dL/dT.
+S_AX = 0  # 3: dL/dAX = sum x dL/dq
+S_AY = 3  # 3: sum y dL/dq
+S_A0 = 6  # 3: sum dL/dq
+S_DET = 9  # dL/d det
+S_CX = 10  # dL/dc (low-pass branch)
+S_CY = 11
+S_TW2 = 12  # dL/dT_w2 through the centre depth (low-pass branch)
+S_OPACITY = 13
+S_NORMAL = 14  # 3
+S_FEATURE = 17  # C
+S_FIXED = 17
+
 _RHO_SLACK = 1e-6
 
 
-@njit(cache=True)
+@njit(inline="always")
+def _cross(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, geo, depth, box, radii):
+    """Per surfel: ``Tm`` (P, 9) ray transform ``K [s_u R_c e_u, s_v R_c e_v, p_c]``
+    (row-major), ``nrm`` (P, 3) camera-frame normal facing the camera, ``geo``,
+    ``depth`` (centre z), ``box`` (P, 4) support box and ``radii`` (0 = not visible)."""
+    fx, sk, cx0, fy, cy0 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
+    big = 4.0 * max(width, height)
+    for i in prange(means.shape[0]):
+        w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
+        inv = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w * inv, x * inv, y * inv, z * inv
+        R = np.empty((3, 3))
+        R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        M = np.empty((3, 3))  # camera-frame columns s_u t_u, s_v t_v, p_c
+        n = np.empty(3)
+        for r in range(3):
+            M[r, 0] = float(scales[i, 0]) * (Rwc[r, 0] * R[0, 0] + Rwc[r, 1] * R[1, 0] + Rwc[r, 2] * R[2, 0])
+            M[r, 1] = float(scales[i, 1]) * (Rwc[r, 0] * R[0, 1] + Rwc[r, 1] * R[1, 1] + Rwc[r, 2] * R[2, 1])
+            M[r, 2] = Rwc[r, 0] * means[i, 0] + Rwc[r, 1] * means[i, 1] + Rwc[r, 2] * means[i, 2] + twc[r]
+            n[r] = Rwc[r, 0] * R[0, 2] + Rwc[r, 1] * R[1, 2] + Rwc[r, 2] * R[2, 2]
+        # Face the camera: n <- -sign(n . p_c) n (dropped when the plane contains the eye).
+        d = n[0] * M[0, 2] + n[1] * M[1, 2] + n[2] * M[2, 2]
+        sgn = -1.0 if d > 0 else (1.0 if d < 0 else 0.0)
+        for r in range(3):
+            nrm[i, r] = sgn * n[r]
+        T = np.empty((3, 3))
+        for c in range(3):
+            T[0, c] = fx * M[0, c] + sk * M[1, c] + cx0 * M[2, c]
+            T[1, c] = fy * M[1, c] + cy0 * M[2, c]
+            T[2, c] = M[2, c]
+        for r in range(3):
+            for c in range(3):
+                Tm[i, 3 * r + c] = T[r, c]
+        # Round to the storage dtype so the geometry matches what the backward sees.
+        for r in range(3):
+            for c in range(3):
+                T[r, c] = float(Tm[i, 3 * r + c])
+        ax = _cross(T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+        ay = _cross(T[2, 0], T[2, 1], T[2, 2], T[0, 0], T[0, 1], T[0, 2])
+        a0 = _cross(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2])
+        zc = T[2, 2]
+        depth[i] = zc
+        o = float(opac[i])
+        rho_cut = 2.0 * math.log(255.0 * o) if o > 0 else -1.0
+        for c in range(3):
+            geo[i, GEO_AX + c] = ax[c]
+            geo[i, GEO_AY + c] = ay[c]
+            geo[i, GEO_A0 + c] = a0[c]
+        det = T[2, 0] * a0[0] + T[2, 1] * a0[1] + T[2, 2] * a0[2]
+        geo[i, GEO_DET] = det
+        geo[i, GEO_INV_DET] = 1.0 / det if det != 0.0 else 0.0  # unused when det == 0 (z = 0 < near)
+        geo[i, GEO_INV_ZC] = 1.0 / zc if zc != 0.0 else 0.0
+        geo[i, GEO_RHO_MAX] = rho_cut * (1.0 + _RHO_SLACK) + _RHO_SLACK
+        geo[i, GEO_OPACITY] = o
+        radii[i] = 0
+        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, -1, 0, -1
+        if not (zc >= near and zc <= far and rho_cut >= 0.0):
+            geo[i, GEO_CX] = 0.0
+            geo[i, GEO_CY] = 0.0
+            continue
+        pcx, pcy = T[0, 2] / zc, T[1, 2] / zc
+        geo[i, GEO_CX] = pcx
+        geo[i, GEO_CY] = pcy
+        # Support box: image of the disc u^2 + v^2 <= rho_cut through the dual conic
+        # T diag(r2, r2, -1) T^T (bounded iff its (2,2) entry < 0), union the low-pass
+        # square; see project.support_boxes (the torch twin used by the reference).
+        r2 = rho_cut
+        c22 = r2 * (T[2, 0] ** 2 + T[2, 1] ** 2) - T[2, 2] ** 2
+        d2 = math.sqrt(r2 / 2.0)
+        lo_x, hi_x, lo_y, hi_y = -big, big, -big, big
+        if c22 < 0:
+            c02 = r2 * (T[0, 0] * T[2, 0] + T[0, 1] * T[2, 1]) - T[0, 2] * T[2, 2]
+            c12 = r2 * (T[1, 0] * T[2, 0] + T[1, 1] * T[2, 1]) - T[1, 2] * T[2, 2]
+            c00 = r2 * (T[0, 0] ** 2 + T[0, 1] ** 2) - T[0, 2] ** 2
+            c11 = r2 * (T[1, 0] ** 2 + T[1, 1] ** 2) - T[1, 2] ** 2
+            xc, yc = c02 / c22, c12 / c22
+            hx = math.sqrt(max(xc * xc - c00 / c22, 0.0))
+            hy = math.sqrt(max(yc * yc - c11 / c22, 0.0))
+            lo_x, hi_x = min(xc - hx, pcx - d2), max(xc + hx, pcx + d2)
+            lo_y, hi_y = min(yc - hy, pcy - d2), max(yc + hy, pcy + d2)
+            if not (math.isfinite(lo_x) and math.isfinite(hi_x) and math.isfinite(lo_y) and math.isfinite(hi_y)):
+                lo_x, hi_x, lo_y, hi_y = -big, big, -big, big
+        rad = max(max(hi_x - pcx, pcx - lo_x), max(hi_y - pcy, pcy - lo_y))
+        xmin = max(int(math.ceil(max(lo_x - 0.5, -1.0))), 0)
+        xmax = min(int(math.floor(min(hi_x + 0.5, float(width)))), width - 1)
+        ymin = max(int(math.ceil(max(lo_y - 0.5, -1.0))), 0)
+        ymax = min(int(math.floor(min(hi_y + 0.5, float(height)))), height - 1)
+        if xmin <= xmax and ymin <= ymax:
+            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = xmin, xmax, ymin, ymax
+            radii[i] = max(1, int(math.ceil(min(max(rad, 0.0), big))))
+
+
+@njit(cache=True, error_model="numpy")
 def bin_tiles(order, box, n_tx, n_ty):
     """Sort (tile, surfel) pairs by tile, keeping the depth order inside each tile.
 
-    ``order``: visible surfel ids front to back; ``box``: (P, 4) xmin, xmax, ymin, ymax.
-    Returns ``tile_start (n_tiles + 1)``, ``tile_list (n_pairs)`` surfel ids,
-    ``emit_start (P + 1)`` and ``slot_of_emit (n_pairs)``: surfel ``s``'s pairs, in its
-    own row-major tile order, sit at ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``.
+    ``order``: visible surfel ids front to back. Returns ``tile_start (n_tiles + 1)``,
+    ``tile_list (n_pairs)`` surfel ids, ``emit_start (P + 1)`` and ``slot_of_emit``:
+    surfel ``s``'s pairs, in its own row-major tile order, sit at list positions
+    ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``.
     """
     P = box.shape[0]
-    n_tiles = n_tx * n_ty
     per_surfel = np.zeros(P + 1, np.int64)
-    counts = np.zeros(n_tiles + 1, np.int64)
+    counts = np.zeros(n_tx * n_ty + 1, np.int64)
     for s in order:
         tx0, tx1 = box[s, 0] // TILE, box[s, 1] // TILE
         ty0, ty1 = box[s, 2] // TILE, box[s, 3] // TILE
@@ -60,9 +189,8 @@ def bin_tiles(order, box, n_tx, n_ty):
     emit_start = np.cumsum(per_surfel)
     tile_start = np.cumsum(counts)
     fill = tile_start[:-1].copy()
-    n_pairs = tile_start[-1]
-    tile_list = np.empty(n_pairs, np.int32)
-    slot_of_emit = np.empty(n_pairs, np.int64)
+    tile_list = np.empty(tile_start[-1], np.int32)
+    slot_of_emit = np.empty(tile_start[-1], np.int64)
     for s in order:
         e = emit_start[s]
         for ty in range(box[s, 2] // TILE, box[s, 3] // TILE + 1):
@@ -76,41 +204,95 @@ def bin_tiles(order, box, n_tx, n_ty):
 
 
 @njit(inline="always")
-def _splat(x, y, l0, l1, l2, Tu0, Tu1, Tu2, Tw0, Tw1, Tw2, cx, cy):
-    """One pair: ``(rho, z, use3, u, v, k0, k1, k2, q2)`` (see reference._composite)."""
-    k0 = x * Tw0 - Tu0
-    k1 = x * Tw1 - Tu1
-    k2 = x * Tw2 - Tu2
-    q0 = k1 * l2 - k2 * l1
-    q1 = k2 * l0 - k0 * l2
-    q2 = k0 * l1 - k1 * l0
+def _row_span(x_lo, x_hi, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max):
+    """Pixels ``x_lo..x_hi`` of a row that can pass ``rho <= rho_max`` (conservative).
+
+    ``rho2 <= rho_max`` is the interval ``|x - cx| <= sqrt(rho_max / 2 - dy^2)``;
+    ``rho3 <= rho_max`` is ``f(x) = a x^2 + 2 b x + c <= 0`` (``q`` is affine in ``x``):
+    the interval between its roots when ``a > 0``, otherwise the whole row. The hull of
+    the two, widened by a rounding margin. Only an accelerator: the per-pixel test decides.
+    """
+    lo = math.inf
+    hi = -math.inf
+    h2 = 0.5 * rho_max - dy2
+    if h2 >= 0.0:
+        h = math.sqrt(h2)
+        lo = cx - h
+        hi = cx + h
+    a = ax0 * ax0 + ax1 * ax1 - rho_max * ax2 * ax2
+    b = ax0 * qr0 + ax1 * qr1 - rho_max * ax2 * qr2
+    c = qr0 * qr0 + qr1 * qr1 - rho_max * qr2 * qr2
+    if a > 1e-12 * (ax0 * ax0 + ax1 * ax1 + rho_max * ax2 * ax2):
+        disc = b * b - a * c
+        if disc >= 0.0:
+            root = math.sqrt(disc)
+            # Numerically stable roots of a x^2 + 2 b x + c.
+            t = -(b + root) if b >= 0.0 else -(b - root)
+            r1 = t / a
+            r2 = c / t if t != 0.0 else r1
+            lo = min(lo, min(r1, r2))
+            hi = max(hi, max(r1, r2))
+    else:
+        return x_lo, x_hi
+    if not (lo <= hi):
+        return 0, -1
+    margin = 1e-3 + 1e-9 * (abs(lo) + abs(hi))
+    return max(x_lo, int(math.ceil(max(lo - margin, x_lo - 1.0)))), min(x_hi, int(math.floor(min(hi + margin, x_hi + 1.0))))
+
+
+@njit(inline="always")
+def _pair(x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o):
+    """One (pixel, surfel) pair: ``(ok, alpha, a_raw, G, z, 1/z, use3, u, v, 1/q2)``.
+
+    ``ok`` is False when the pair is skipped: ``rho`` beyond ``rho_max``, depth below
+    ``near`` or ``alpha < 1/255``. The row supplies ``qr = y AY + A0`` and
+    ``dy2 = (y - cy)^2``; ``zc`` is the centre depth used by the low-pass branch.
+    """
+    q0 = x * ax0 + qr0
+    q1 = x * ax1 + qr1
+    q2 = x * ax2 + qr2
     dx = x - cx
-    dy = y - cy
-    rho2 = 2.0 * (dx * dx + dy * dy)
+    rho2 = 2.0 * (dx * dx + dy2)
+    in3 = abs(q2) * UV_MAX > max(abs(q0), abs(q1)) and q0 * q0 + q1 * q1 <= rho_max * (q2 * q2)
+    if not in3 and rho2 > rho_max:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, False, 0.0, 0.0, 0.0
     u = 0.0
     v = 0.0
-    rho3 = math.inf
-    if abs(q2) * UV_MAX > max(abs(q0), abs(q1)):
-        u = q0 / q2
-        v = q1 / q2
-        rho3 = u * u + v * v
-    if rho3 <= rho2:
-        return rho3, u * Tw0 + v * Tw1 + Tw2, True, u, v, k0, k1, k2, q2
-    return rho2, Tw2, False, u, v, k0, k1, k2, q2
+    inv = 0.0
+    use3 = False
+    if in3:
+        inv = 1.0 / q2
+        u = q0 * inv
+        v = q1 * inv
+        use3 = u * u + v * v <= rho2
+    rho = rho2
+    z = zc
+    iz = inv_zc
+    if use3:
+        rho = u * u + v * v
+        z = det * inv
+        iz = q2 * inv_det
+    if rho > rho_max or z < near:
+        return False, 0.0, 0.0, 0.0, 0.0, 0.0, False, 0.0, 0.0, 0.0
+    G = math.exp(-0.5 * rho)
+    a_raw = o * G
+    a = min(ALPHA_MAX, a_raw)
+    return a >= ALPHA_MIN, a, a_raw, G, z, iz, use3, u, v, inv
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def forward(
-    tile_start, tile_list, tile_order, box, Tm, opac, nrm, feat, width, n_tx, near, far,
-    out_feat, out_alpha, out_dsum, out_nrm, out_med, out_dist,
-    aux_T, aux_W, aux_M1, aux_M2, n_contrib, med_local,
+    tile_start, tile_list, tile_order, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld, out_dist,
+    aux_T, aux_D, aux_W, aux_M1, aux_M2, n_contrib, med_local,
 ):  # fmt: skip
-    """Composite every tile front to back. ``Tm``: (P, 9) row-major ray transforms.
+    """Composite every tile front to back.
 
-    Writes the six maps and, for the backward, the final transmittance, the moment
-    sums ``W = sum w, M1 = sum w m, M2 = sum w m^2`` (float64), the number of list
-    entries up to the last contributor (``n_contrib``) and the list position of the
-    median-depth surfel (``med_local``, -1 if none), both local to the tile.
+    Besides the seven maps it keeps, per pixel, the final transmittance ``aux_T``,
+    ``D = sum w z``, the moment sums ``W = sum w``, ``M1 = sum w m``, ``M2 = sum w m^2``
+    (float64), the number of list entries up to the last contributor (``n_contrib``)
+    and the list position of the median-depth surfel (``med_local``, -1 if none),
+    both local to the tile.
     """
     height = out_alpha.shape[0]
     C = feat.shape[1]
@@ -135,41 +317,40 @@ def forward(
         medi = np.full(npx, -1, np.int32)
         last = np.zeros(npx, np.int32)
         done = np.zeros(npx, np.bool_)
+        fs = np.empty(C)
         n_done = 0
         start = tile_start[t]
         for j in range(start, tile_start[t + 1]):
             if n_done == npx:
                 break
             s = tile_list[j]
-            bx0 = max(box[s, 0], x0)
-            bx1 = min(box[s, 1], x1 - 1)
-            by0 = max(box[s, 2], y0)
-            by1 = min(box[s, 3], y1 - 1)
-            Tu0, Tu1, Tu2 = float(Tm[s, 0]), float(Tm[s, 1]), float(Tm[s, 2])
-            Tv0, Tv1, Tv2 = float(Tm[s, 3]), float(Tm[s, 4]), float(Tm[s, 5])
-            Tw0, Tw1, Tw2 = float(Tm[s, 6]), float(Tm[s, 7]), float(Tm[s, 8])
-            o = float(opac[s])
-            rho_max = 2.0 * math.log(255.0 * o) * (1.0 + _RHO_SLACK) + _RHO_SLACK
-            cx = Tu2 / Tw2
-            cy = Tv2 / Tw2
+            ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
+            ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
+            a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
+            det, cx, cy = geo[s, GEO_DET], geo[s, GEO_CX], geo[s, GEO_CY]
+            rho_max, o = geo[s, GEO_RHO_MAX], geo[s, GEO_OPACITY]
+            inv_det, inv_zc = geo[s, GEO_INV_DET], geo[s, GEO_INV_ZC]
+            zc = float(Tm[s, 8])
+            for c in range(C):
+                fs[c] = feat[s, c]
             n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
-            for py in range(by0, by1 + 1):
+            for py in range(max(box[s, 2], y0), min(box[s, 3], y1 - 1) + 1):
                 y = float(py)
-                l0 = y * Tw0 - Tv0
-                l1 = y * Tw1 - Tv1
-                l2 = y * Tw2 - Tv2
+                dy = y - cy
+                dy2 = dy * dy
+                qr0 = y * ay0 + a00
+                qr1 = y * ay1 + a01
+                qr2 = y * ay2 + a02
                 row = (py - y0) * tw - x0
-                for px in range(bx0, bx1 + 1):
+                xa, xb = _row_span(max(box[s, 0], x0), min(box[s, 1], x1 - 1), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max)
+                for px in range(xa, xb + 1):
                     p = row + px
                     if done[p]:
                         continue
-                    rho, z, use3, u, v, k0, k1, k2, q2 = _splat(
-                        float(px), y, l0, l1, l2, Tu0, Tu1, Tu2, Tw0, Tw1, Tw2, cx, cy
+                    ok, a, a_raw, G, z, iz, use3, u, v, inv = _pair(
+                        float(px), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o
                     )
-                    if rho > rho_max or z < near:
-                        continue
-                    a = min(ALPHA_MAX, o * math.exp(-0.5 * rho))
-                    if a < ALPHA_MIN:
+                    if not ok:
                         continue
                     T = Tr[p]
                     T_next = T * (1.0 - a)
@@ -179,12 +360,12 @@ def forward(
                         continue
                     w = a * T
                     for c in range(C):
-                        F[p, c] += w * feat[s, c]
+                        F[p, c] += w * fs[c]
                     N[p, 0] += w * n0
                     N[p, 1] += w * n1
                     N[p, 2] += w * n2
                     D[p] += w * z
-                    m = mscale * (1.0 - near / z)
+                    m = mscale * (1.0 - near * iz)
                     Ws[p] += w
                     M1[p] += w * m
                     M2[p] += w * m * m
@@ -198,14 +379,18 @@ def forward(
                 p = (py - y0) * tw + px - x0
                 for c in range(C):
                     out_feat[py, px, c] = F[p, c]
-                for c in range(3):
-                    out_nrm[py, px, c] = N[p, c]
-                out_alpha[py, px] = 1.0 - Tr[p]
-                out_dsum[py, px] = D[p]
+                for r in range(3):
+                    out_ncam[py, px, r] = N[p, r]
+                    # n_world = R_wc^T n_cam
+                    out_nworld[py, px, r] = Rwc[0, r] * N[p, 0] + Rwc[1, r] * N[p, 1] + Rwc[2, r] * N[p, 2]
+                A = 1.0 - Tr[p]
+                out_alpha[py, px] = A
+                out_depth[py, px] = D[p] / (A + depth_eps)
                 out_med[py, px] = med[p]
-                # sum_{i>j} w_i w_j (m_i - m_j)^2 == W M2 - M1^2 (exact identity; float64).
+                # sum_{i>j} w_i w_j (m_i - m_j)^2 == W M2 - M1^2 (exact identity, float64).
                 out_dist[py, px] = max(Ws[p] * M2[p] - M1[p] * M1[p], 0.0)
                 aux_T[py, px] = Tr[p]
+                aux_D[py, px] = D[p]
                 aux_W[py, px] = Ws[p]
                 aux_M1[py, px] = M1[p]
                 aux_M2[py, px] = M2[p]
@@ -213,18 +398,20 @@ def forward(
                 med_local[py, px] = medi[p]
 
 
-@njit(parallel=True, cache=True)
+@njit(parallel=True, cache=True, error_model="numpy")
 def backward(
-    tile_start, tile_list, tile_order, box, Tm, opac, nrm, feat, width, n_tx, near, far,
-    aux_T, aux_W, aux_M1, aux_M2, n_contrib, med_local,
-    g_feat, g_alpha, g_dsum, g_nrm, g_med, g_dist, slots,
+    tile_start, tile_list, tile_order, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    aux_T, aux_D, aux_W, aux_M1, aux_M2, n_contrib, med_local,
+    g_feat, g_alpha, g_depth, g_med, g_ncam, g_nworld, g_dist, slots,
 ):  # fmt: skip
-    """Gradients per (tile, surfel) pair into ``slots`` (n_pairs, 13 + C).
+    """Pair gradients into ``slots`` (n_pairs, 17 + C).
 
     Per pixel, walking back to front with ``T_i = T_{i+1} / (1 - a_i)``:
-    ``dL/da_i = T_i v_i - S_i / (1 - a_i)``, with ``S_i = sum_{k>i} w_k v_k`` and
-    ``v_i = gA + gF.f_i + gD z_i + gN.n_i + gDist dDist/dw_i``, where
-    ``dDist/dw_i = m_i^2 W - 2 m_i M1 + M2`` (totals) since ``Dist = W M2 - M1^2``.
+    ``dL/da_i = T_i v_i - S_i / (1 - a_i)``, ``S_i = sum_{k>i} w_k v_k``,
+    ``v_i = gA + gF.f_i + gD z_i + gN.n_i + gDist dDist/dw_i`` and
+    ``dDist/dw_i = m_i^2 W - 2 m_i M1 + M2`` (totals), since ``Dist = W M2 - M1^2``.
+    The expected depth ``D / (A + eps)`` and the world normal ``R_wc^T N`` are folded
+    into ``gD``, ``gA`` and ``gN`` first.
     """
     height = aux_T.shape[0]
     C = feat.shape[1]
@@ -241,121 +428,219 @@ def backward(
         npx = tw * (y1 - y0)
         Tr = np.empty(npx)
         S = np.zeros(npx)
+        gA = np.empty(npx)
+        gD = np.empty(npx)
+        gN = np.empty((npx, 3))
         max_last = 0
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tw + px - x0
                 Tr[p] = aux_T[py, px]
                 max_last = max(max_last, n_contrib[py, px])
+                inv = 1.0 / (1.0 - aux_T[py, px] + depth_eps)
+                ge = float(g_depth[py, px])
+                gD[p] = ge * inv
+                gA[p] = float(g_alpha[py, px]) - ge * aux_D[py, px] * inv * inv
+                for r in range(3):
+                    gN[p, r] = float(g_ncam[py, px, r]) + (
+                        Rwc[r, 0] * g_nworld[py, px, 0] + Rwc[r, 1] * g_nworld[py, px, 1] + Rwc[r, 2] * g_nworld[py, px, 2]
+                    )
         start = tile_start[t]
         for j in range(start + max_last, tile_start[t + 1]):
             slots[j, :] = 0.0
         acc = np.empty(G)
+        fs = np.empty(C)
         for j in range(start + max_last - 1, start - 1, -1):
             li = j - start
             s = tile_list[j]
             acc[:] = 0.0
-            bx0 = max(box[s, 0], x0)
-            bx1 = min(box[s, 1], x1 - 1)
-            by0 = max(box[s, 2], y0)
-            by1 = min(box[s, 3], y1 - 1)
-            Tu0, Tu1, Tu2 = float(Tm[s, 0]), float(Tm[s, 1]), float(Tm[s, 2])
-            Tv0, Tv1, Tv2 = float(Tm[s, 3]), float(Tm[s, 4]), float(Tm[s, 5])
-            Tw0, Tw1, Tw2 = float(Tm[s, 6]), float(Tm[s, 7]), float(Tm[s, 8])
-            o = float(opac[s])
-            rho_max = 2.0 * math.log(255.0 * o) * (1.0 + _RHO_SLACK) + _RHO_SLACK
-            cx = Tu2 / Tw2
-            cy = Tv2 / Tw2
+            ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
+            ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
+            a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
+            det, cx, cy = geo[s, GEO_DET], geo[s, GEO_CX], geo[s, GEO_CY]
+            rho_max, o = geo[s, GEO_RHO_MAX], geo[s, GEO_OPACITY]
+            inv_det, inv_zc = geo[s, GEO_INV_DET], geo[s, GEO_INV_ZC]
+            zc = float(Tm[s, 8])
+            for c in range(C):
+                fs[c] = feat[s, c]
             n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
-            for py in range(by0, by1 + 1):
+            for py in range(max(box[s, 2], y0), min(box[s, 3], y1 - 1) + 1):
                 y = float(py)
-                l0 = y * Tw0 - Tv0
-                l1 = y * Tw1 - Tv1
-                l2 = y * Tw2 - Tv2
+                dy = y - cy
+                dy2 = dy * dy
+                qr0 = y * ay0 + a00
+                qr1 = y * ay1 + a01
+                qr2 = y * ay2 + a02
                 row = (py - y0) * tw - x0
-                for px in range(bx0, bx1 + 1):
+                xa, xb = _row_span(max(box[s, 0], x0), min(box[s, 1], x1 - 1), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max)
+                for px in range(xa, xb + 1):
                     if li >= n_contrib[py, px]:
                         continue
-                    p = row + px
                     x = float(px)
-                    rho, z, use3, u, v, k0, k1, k2, q2 = _splat(
-                        x, y, l0, l1, l2, Tu0, Tu1, Tu2, Tw0, Tw1, Tw2, cx, cy
+                    ok, a, a_raw, Gv, z, iz, use3, u, v, inv = _pair(
+                        x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o
                     )
-                    if rho > rho_max or z < near:
+                    if not ok:
                         continue
-                    Gv = math.exp(-0.5 * rho)
-                    a_raw = o * Gv
-                    a = min(ALPHA_MAX, a_raw)
-                    if a < ALPHA_MIN:
-                        continue
-                    T = Tr[p] / (1.0 - a)
+                    p = row + px
+                    r = 1.0 / (1.0 - a)
+                    T = Tr[p] * r
                     Tr[p] = T
                     w = a * T
-                    m = mscale * (1.0 - near / z)
+                    m = mscale * (1.0 - near * iz)
                     Wt = aux_W[py, px]
                     M1t = aux_M1[py, px]
-                    gd = g_dist[py, px]
-                    vsum = g_alpha[py, px] + g_dsum[py, px] * z
+                    gd = float(g_dist[py, px])
+                    gn0, gn1, gn2 = gN[p, 0], gN[p, 1], gN[p, 2]
+                    vsum = gA[p] + gD[p] * z + gn0 * n0 + gn1 * n1 + gn2 * n2
                     vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
-                    gn0, gn1, gn2 = float(g_nrm[py, px, 0]), float(g_nrm[py, px, 1]), float(g_nrm[py, px, 2])
-                    vsum += gn0 * n0 + gn1 * n1 + gn2 * n2
                     for c in range(C):
                         gf = float(g_feat[py, px, c])
-                        vsum += gf * feat[s, c]
-                        acc[G_FEATURE + c] += gf * w
-                    acc[G_NORMAL] += gn0 * w
-                    acc[G_NORMAL + 1] += gn1 * w
-                    acc[G_NORMAL + 2] += gn2 * w
-                    dL_da = T * vsum - S[p] / (1.0 - a)
+                        vsum += gf * fs[c]
+                        acc[S_FEATURE + c] += gf * w
+                    acc[S_NORMAL] += gn0 * w
+                    acc[S_NORMAL + 1] += gn1 * w
+                    acc[S_NORMAL + 2] += gn2 * w
+                    dL_da = T * vsum - S[p] * r
                     S[p] += w * vsum
-                    dz = g_dsum[py, px] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near / (z * z)
+                    dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
                     if med_local[py, px] == li:
-                        dz += g_med[py, px]
+                        dz += float(g_med[py, px])
                     drho = 0.0
                     if a_raw < ALPHA_MAX:  # the cap has zero derivative
-                        acc[G_OPACITY] += dL_da * Gv
+                        acc[S_OPACITY] += dL_da * Gv
                         drho = -0.5 * Gv * o * dL_da
                     if use3:
-                        # rho3 = u^2 + v^2, z = u Tw0 + v Tw1 + Tw2, (u, v) = (q0, q1) / q2.
-                        du = 2.0 * u * drho + dz * Tw0
-                        dv = 2.0 * v * drho + dz * Tw1
-                        dq0 = du / q2
-                        dq1 = dv / q2
-                        dq2 = -(du * u + dv * v) / q2
-                        # q = k x l: dL/dk = l x dq, dL/dl = dq x k.
-                        dk0 = l1 * dq2 - l2 * dq1
-                        dk1 = l2 * dq0 - l0 * dq2
-                        dk2 = l0 * dq1 - l1 * dq0
-                        dl0 = dq1 * k2 - dq2 * k1
-                        dl1 = dq2 * k0 - dq0 * k2
-                        dl2 = dq0 * k1 - dq1 * k0
-                        # k = x T_w - T_u, l = y T_w - T_v.
-                        acc[0] -= dk0
-                        acc[1] -= dk1
-                        acc[2] -= dk2
-                        acc[3] -= dl0
-                        acc[4] -= dl1
-                        acc[5] -= dl2
-                        acc[6] += x * dk0 + y * dl0 + dz * u
-                        acc[7] += x * dk1 + y * dl1 + dz * v
-                        acc[8] += x * dk2 + y * dl2 + dz
+                        # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
+                        dq0 = 2.0 * drho * u * inv
+                        dq1 = 2.0 * drho * v * inv
+                        dq2 = -(2.0 * drho * (u * u + v * v) + dz * z) * inv
+                        acc[S_AX] += x * dq0
+                        acc[S_AX + 1] += x * dq1
+                        acc[S_AX + 2] += x * dq2
+                        acc[S_AY] += y * dq0
+                        acc[S_AY + 1] += y * dq1
+                        acc[S_AY + 2] += y * dq2
+                        acc[S_A0] += dq0
+                        acc[S_A0 + 1] += dq1
+                        acc[S_A0 + 2] += dq2
+                        acc[S_DET] += dz * inv
                     else:
-                        # rho2 = 2 |(x, y) - c|^2, c = (Tu2, Tv2) / Tw2, z = Tw2.
-                        dcx = -4.0 * (x - cx) * drho
-                        dcy = -4.0 * (y - cy) * drho
-                        acc[2] += dcx / Tw2
-                        acc[5] += dcy / Tw2
-                        acc[8] += dz - (dcx * cx + dcy * cy) / Tw2
+                        # rho2 = 2 |(x, y) - c|^2, z = centre depth T_w2.
+                        acc[S_CX] -= 4.0 * (x - cx) * drho
+                        acc[S_CY] -= 4.0 * dy * drho
+                        acc[S_TW2] += dz
             for g in range(G):
                 slots[j, g] = acc[g]
 
 
-@njit(parallel=True, cache=True)
-def reduce_slots(emit_start, slot_of_emit, slots, out):
-    """``out[s] = sum of surfel s's slots`` in its fixed emission order (deterministic)."""
+@njit(inline="always")
+def _slot_to_dT(g, T, dT):
+    """dL/dT (3x3) from summed slot terms (see S_* and the module doc)."""
+    Tu0, Tu1, Tu2 = T[0], T[1], T[2]
+    Tv0, Tv1, Tv2 = T[3], T[4], T[5]
+    Tw0, Tw1, Tw2 = T[6], T[7], T[8]
+    gx0, gx1, gx2 = g[S_AX], g[S_AX + 1], g[S_AX + 2]
+    gy0, gy1, gy2 = g[S_AY], g[S_AY + 1], g[S_AY + 2]
+    g00, g01, g02 = g[S_A0], g[S_A0 + 1], g[S_A0 + 2]
+    gdet = g[S_DET]
+    # For g . (a x b): d/da = b x g, d/db = g x a. AX = Tv x Tw, AY = Tw x Tu, A0 = Tu x Tv;
+    # det = Tu . (Tv x Tw): d/dTu = AX, d/dTv = AY, d/dTw = A0.
+    ax = _cross(Tv0, Tv1, Tv2, Tw0, Tw1, Tw2)
+    ay = _cross(Tw0, Tw1, Tw2, Tu0, Tu1, Tu2)
+    a0 = _cross(Tu0, Tu1, Tu2, Tv0, Tv1, Tv2)
+    r1 = _cross(gy0, gy1, gy2, Tw0, Tw1, Tw2)  # Tu from AY
+    r2 = _cross(Tv0, Tv1, Tv2, g00, g01, g02)  # Tu from A0
+    r3 = _cross(Tw0, Tw1, Tw2, gx0, gx1, gx2)  # Tv from AX
+    r4 = _cross(g00, g01, g02, Tu0, Tu1, Tu2)  # Tv from A0
+    r5 = _cross(gx0, gx1, gx2, Tv0, Tv1, Tv2)  # Tw from AX
+    r6 = _cross(Tu0, Tu1, Tu2, gy0, gy1, gy2)  # Tw from AY
+    for c in range(3):
+        dT[c] = r1[c] + r2[c] + gdet * ax[c]
+        dT[3 + c] = r3[c] + r4[c] + gdet * ay[c]
+        dT[6 + c] = r5[c] + r6[c] + gdet * a0[c]
+    # Low-pass branch: c = (Tu2, Tv2) / Tw2 and the centre depth Tw2.
+    gcx, gcy = g[S_CX], g[S_CY]
+    dT[2] += gcx / Tw2
+    dT[5] += gcy / Tw2
+    dT[8] += g[S_TW2] - (gcx * Tu2 + gcy * Tv2) / (Tw2 * Tw2)
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def reduce_and_chain(
+    emit_start, slot_of_emit, slots, quats, scales, means, Tm, nrm, K, Rwc,
+    d_means, d_quats, d_scales, d_opac, d_feat, d_means2d,
+):  # fmt: skip
+    """Per surfel: sum its slots in a fixed order (deterministic), turn them into
+    dL/dT, and chain ``T = K [s_u R_wc r_0, s_v R_wc r_1, R_wc p + t]`` and
+    ``n = sign * R_wc r_2`` back to means, quats (through the normalisation) and scales.
+    ``d_means2d`` is the gradient w.r.t. a screen translation of the splat,
+    ``(dL/dT_u . T_w, dL/dT_v . T_w)``."""
     G = slots.shape[1]
-    for s in prange(out.shape[0]):
-        for e in range(emit_start[s], emit_start[s + 1]):
+    C = d_feat.shape[1]
+    for i in prange(means.shape[0]):
+        if emit_start[i] == emit_start[i + 1]:
+            continue  # never drawn: all gradients stay zero
+        g = np.zeros(G)
+        for e in range(emit_start[i], emit_start[i + 1]):
             j = slot_of_emit[e]
-            for g in range(G):
-                out[s, g] += slots[j, g]
+            for k in range(G):
+                g[k] += slots[j, k]
+        T = np.empty(9)
+        for k in range(9):
+            T[k] = float(Tm[i, k])
+        dT = np.empty(9)
+        _slot_to_dT(g, T, dT)
+        d_means2d[i, 0] = dT[0] * T[6] + dT[1] * T[7] + dT[2] * T[8]
+        d_means2d[i, 1] = dT[3] * T[6] + dT[4] * T[7] + dT[5] * T[8]
+        d_opac[i] = g[S_OPACITY]
+        for c in range(C):
+            d_feat[i, c] = g[S_FEATURE + c]
+        # dM = K^T dT (M = [s_u c_0, s_v c_1, p_c] in the camera frame).
+        dM = np.empty((3, 3))
+        for c in range(3):
+            dM[0, c] = K[0, 0] * dT[c]
+            dM[1, c] = K[0, 1] * dT[c] + K[1, 1] * dT[3 + c]
+            dM[2, c] = K[0, 2] * dT[c] + K[1, 2] * dT[3 + c] + dT[6 + c]
+        w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
+        qn = math.sqrt(w * w + x * x + y * y + z * z)
+        w, x, y, z = w / qn, x / qn, y / qn, z / qn
+        R = np.empty((3, 3))
+        R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+        R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+        R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+        # dL/d(world columns r_k) = R_wc^T dL/d(camera columns).
+        s0, s1 = float(scales[i, 0]), float(scales[i, 1])
+        # The facing sign: n = sign * R_wc r_2, and sign = n . (R_wc r_2).
+        sgn = 0.0
+        for r in range(3):
+            sgn += float(nrm[i, r]) * (Rwc[r, 0] * R[0, 2] + Rwc[r, 1] * R[1, 2] + Rwc[r, 2] * R[2, 2])
+        sgn = 1.0 if sgn > 0.5 else (-1.0 if sgn < -0.5 else 0.0)
+        dR = np.empty((3, 3))
+        ds0 = 0.0
+        ds1 = 0.0
+        for r in range(3):
+            dc0 = Rwc[0, r] * dM[0, 0] + Rwc[1, r] * dM[1, 0] + Rwc[2, r] * dM[2, 0]
+            dc1 = Rwc[0, r] * dM[0, 1] + Rwc[1, r] * dM[1, 1] + Rwc[2, r] * dM[2, 1]
+            dn = Rwc[0, r] * g[S_NORMAL] + Rwc[1, r] * g[S_NORMAL + 1] + Rwc[2, r] * g[S_NORMAL + 2]
+            dR[r, 0] = s0 * dc0
+            dR[r, 1] = s1 * dc1
+            dR[r, 2] = sgn * dn
+            ds0 += dc0 * R[r, 0]
+            ds1 += dc1 * R[r, 1]
+            d_means[i, r] = Rwc[0, r] * dM[0, 2] + Rwc[1, r] * dM[1, 2] + Rwc[2, r] * dM[2, 2]
+        d_scales[i, 0] = ds0
+        d_scales[i, 1] = ds1
+        dw = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
+        dx = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2]
+                  + z * dR[2, 0] + w * dR[2, 1] - 2 * x * dR[2, 2])  # fmt: skip
+        dy = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
+                  - w * dR[2, 0] + z * dR[2, 1] - 2 * y * dR[2, 2])  # fmt: skip
+        dz = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
+                  + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])  # fmt: skip
+        # Through q / |q|: (I - q q^T) / |q|.
+        dot = w * dw + x * dx + y * dy + z * dz
+        d_quats[i, 0] = (dw - w * dot) / qn
+        d_quats[i, 1] = (dx - x * dot) / qn
+        d_quats[i, 2] = (dy - y * dot) / qn
+        d_quats[i, 3] = (dz - z * dot) / qn

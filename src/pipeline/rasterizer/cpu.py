@@ -1,11 +1,16 @@
-"""The ``cpu`` backend: a torch.autograd.Function around the numba kernels.
+"""The ``cpu`` backend: one torch.autograd.Function around the numba kernels.
 
-Why numba rather than a torch C++/OpenMP extension: both were measured 3-8x faster
-than pure torch here, but numba needs no compiler toolchain at install or run time,
-caches its machine code next to the module (``cache=True``; the first use in a fresh
-checkout compiles for ~tens of seconds, later processes load in well under a second),
-and specialises the same source for float32 and float64 (float64 is what gradcheck
-needs).
+Everything per surfel (ray transform, normal, support box) and per pixel (expected
+depth, world normal) is inside the kernels, forward and backward: on a loaded 2-core
+machine every small multi-threaded torch op costs up to milliseconds of OpenMP
+synchronisation, and the whole render must take ~0.1 s. Only SH colours (when
+``sh_degree`` is set) are evaluated in torch before the Function.
+
+Why numba rather than a torch C++/OpenMP extension (both measured 3-8x faster than
+pure torch here): it needs no compiler toolchain at install or run time, caches its
+machine code next to the module (``cache=True``; first use in a fresh checkout
+compiles for about half a minute, later processes load it in about a second), and
+specialises the same source for float32 and float64 (float64 is what gradcheck needs).
 """
 from __future__ import annotations
 
@@ -18,32 +23,135 @@ import torch
 from torch import Tensor
 
 from pipeline.rasterizer import _kernels as K
-from pipeline.rasterizer.project import Projected
 from pipeline.rasterizer.types import Camera
 
 _compile_seconds: float | None = None
 
 
 @dataclass
-class Bins:
-    """Tile binning of one (surfels, camera) pair; see ``_kernels.bin_tiles``."""
+class Geometry:
+    """Per-surfel screen data and the tile binning of one (surfels, camera) pair."""
 
+    Tm: np.ndarray  # (P, 9) ray transforms, row-major, input dtype
+    nrm: np.ndarray  # (P, 3) camera-facing normals, input dtype
+    geo: np.ndarray  # (P, GEO_SIZE) float64, see _kernels.GEO_*
+    depth: np.ndarray  # (P,) centre depth
+    box: np.ndarray  # (P, 4) int64
+    radii: np.ndarray  # (P,) int32
     tile_start: np.ndarray
     tile_list: np.ndarray
     emit_start: np.ndarray
     slot_of_emit: np.ndarray
-    tile_order: np.ndarray  # tiles by decreasing pair count, for load balance
-    box: np.ndarray
+    tile_order: np.ndarray  # tiles by decreasing pair count (load balance)
     n_tx: int
 
     @property
     def num_pairs(self) -> int:
+        """(tile, surfel) pairs: the size of the per-pair gradient buffer."""
         return int(self.tile_list.shape[0])
+
+    @property
+    def box_pixels(self) -> int:
+        """Pixel-surfel pairs inside the support boxes (the pairs the kernels visit)."""
+        vis = self.radii > 0
+        b = self.box[vis]
+        return int(((b[:, 1] - b[:, 0] + 1) * (b[:, 3] - b[:, 2] + 1)).sum())
+
+
+def _np(t: Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy()
+
+
+def _camera_arrays(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    w2c = camera.world_to_cam.numpy()
+    return camera.K.numpy(), np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
+
+
+def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> Geometry:
+    """Per-surfel set-up and tile binning (no gradient)."""
+    P = means.shape[0]
+    dtype = np.float64 if means.dtype == torch.float64 else np.float32
+    Kc, Rwc, twc = _camera_arrays(camera)
+    Tm = np.empty((P, 9), dtype)
+    nrm = np.empty((P, 3), dtype)
+    geo = np.empty((P, K.GEO_SIZE), np.float64)
+    depth = np.empty(P, np.float64)
+    box = np.empty((P, 4), np.int64)
+    radii = np.empty(P, np.int32)
+    K.preprocess(
+        _np(means), _np(quats), _np(scales), _np(opacities), Kc, Rwc, twc, camera.width, camera.height,
+        camera.near, camera.far, Tm, nrm, geo, depth, box, radii,
+    )  # fmt: skip
+    visible = np.flatnonzero(radii > 0)
+    order = visible[np.argsort(depth[visible], kind="stable")]
+    n_tx = -(-camera.width // K.TILE)
+    n_ty = -(-camera.height // K.TILE)
+    tile_start, tile_list, emit_start, slot_of_emit = K.bin_tiles(order, box, n_tx, n_ty)
+    tile_order = np.argsort(-np.diff(tile_start), kind="stable")
+    return Geometry(Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_emit, tile_order, n_tx)
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: Geometry, camera: Camera, depth_eps: float):
+        H, W = camera.height, camera.width
+        C = colors.shape[1]
+        dtype = geom.Tm.dtype
+        feat = _np(colors)
+        _, Rwc, _ = _camera_arrays(camera)
+        maps = [np.empty((H, W, C), dtype)] + [np.empty((H, W), dtype) for _ in range(3)]
+        maps += [np.empty((H, W, 3), dtype), np.empty((H, W, 3), dtype), np.empty((H, W), dtype)]
+        aux = [np.empty((H, W), np.float64) for _ in range(5)]
+        n_contrib = np.empty((H, W), np.int32)
+        med_local = np.empty((H, W), np.int32)
+        with numba.parallel_chunksize(1):
+            K.forward(
+                geom.tile_start, geom.tile_list, geom.tile_order, geom.box, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
+                W, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, n_contrib, med_local,
+            )  # fmt: skip
+        ctx.state = (geom, camera, depth_eps, feat, aux, n_contrib, med_local)
+        ctx.save_for_backward(means, quats, scales)
+        return tuple(torch.from_numpy(a) for a in maps)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        geom, camera, depth_eps, feat, aux, n_contrib, med_local = ctx.state
+        means, quats, scales = ctx.saved_tensors
+        P, C = feat.shape
+        Kc, Rwc, _ = _camera_arrays(camera)
+        slots = np.empty((geom.num_pairs, K.S_FIXED + C), np.float64)
+        with numba.parallel_chunksize(1):
+            K.backward(
+                geom.tile_start, geom.tile_list, geom.tile_order, geom.box, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
+                camera.width, geom.n_tx, camera.near, camera.far, depth_eps, *aux, n_contrib, med_local,
+                *(_np(g) for g in grads), slots,
+            )  # fmt: skip
+        dtype = geom.Tm.dtype
+        out = [np.zeros((P, 3), dtype), np.zeros((P, 4), dtype), np.zeros((P, 2), dtype), np.zeros(P, dtype)]
+        out += [np.zeros((P, C), dtype), np.zeros((P, 2), dtype)]
+        K.reduce_and_chain(
+            geom.emit_start, geom.slot_of_emit, slots, _np(quats), _np(scales), _np(means), geom.Tm, geom.nrm,
+            Kc, Rwc, *out,
+        )  # fmt: skip
+        return tuple(torch.from_numpy(a) for a in out) + (None, None, None)
+
+
+def render(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera, depth_eps: float
+) -> tuple[list[Tensor], Tensor, Tensor, Geometry]:
+    """Maps ``[features, alpha, depth_expected, depth_median, normal_cam, normal_world,
+    distortion]``, ``radii``, ``means2d`` and the geometry (for statistics)."""
+    geom = prepare(means, quats, scales, opacities, camera)
+    centre = geom.geo[:, K.GEO_CX : K.GEO_CY + 1].astype(geom.Tm.dtype)
+    means2d = torch.from_numpy(centre).requires_grad_(torch.is_grad_enabled())
+    maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps)
+    return list(maps), torch.from_numpy(geom.radii), means2d, geom
 
 
 def warm_up() -> float:
     """Compile (or load from numba's cache) every kernel for float32 and float64 on a
-    tiny scene; returns the seconds it took in this process (0 after the first call)."""
+    tiny scene; returns the seconds this took (0 if already done in this process)."""
     global _compile_seconds
     if _compile_seconds is not None:
         return 0.0
@@ -63,72 +171,3 @@ def warm_up() -> float:
         (out.features.sum() + out.distortion.sum() + out.depth_median.sum()).backward()
     _compile_seconds = time.perf_counter() - t0
     return _compile_seconds
-
-
-def make_bins(proj: Projected, camera: Camera) -> Bins:
-    n_tx = -(-camera.width // K.TILE)
-    n_ty = -(-camera.height // K.TILE)
-    box = np.ascontiguousarray(proj.box.numpy())
-    order = np.ascontiguousarray(proj.order.numpy())
-    tile_start, tile_list, emit_start, slot_of_emit = K.bin_tiles(order, box, n_tx, n_ty)
-    tile_order = np.argsort(-np.diff(tile_start), kind="stable")
-    return Bins(tile_start, tile_list, emit_start, slot_of_emit, tile_order, box, n_tx)
-
-
-def _np(t: Tensor) -> np.ndarray:
-    return t.detach().contiguous().numpy()
-
-
-class _Rasterize(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, T: Tensor, opacities: Tensor, normals: Tensor, colors: Tensor, bins: Bins, camera: Camera):
-        H, W = camera.height, camera.width
-        P, C = colors.shape
-        dtype = np.float64 if T.dtype == torch.float64 else np.float32
-        Tm = _np(T.reshape(P, 9))
-        opac, nrm, feat = _np(opacities), _np(normals), _np(colors)
-        out_feat = np.empty((H, W, C), dtype)
-        out_nrm = np.empty((H, W, 3), dtype)
-        out_alpha, out_dsum, out_med, out_dist = (np.empty((H, W), dtype) for _ in range(4))
-        aux = [np.empty((H, W), np.float64) for _ in range(4)]
-        n_contrib = np.empty((H, W), np.int32)
-        med_local = np.empty((H, W), np.int32)
-        with numba.parallel_chunksize(1):
-            K.forward(
-                bins.tile_start, bins.tile_list, bins.tile_order, bins.box, Tm, opac, nrm, feat, W, bins.n_tx,
-                camera.near, camera.far, out_feat, out_alpha, out_dsum, out_nrm, out_med, out_dist,
-                *aux, n_contrib, med_local,
-            )  # fmt: skip
-        ctx.state = (Tm, opac, nrm, feat, bins, camera, aux, n_contrib, med_local)
-        return tuple(torch.from_numpy(a) for a in (out_feat, out_alpha, out_dsum, out_nrm, out_med, out_dist))
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, g_feat, g_alpha, g_dsum, g_nrm, g_med, g_dist):
-        Tm, opac, nrm, feat, bins, camera, aux, n_contrib, med_local = ctx.state
-        P, C = feat.shape
-        slots = np.empty((bins.num_pairs, K.G_FIXED + C), feat.dtype)
-        with numba.parallel_chunksize(1):
-            K.backward(
-                bins.tile_start, bins.tile_list, bins.tile_order, bins.box, Tm, opac, nrm, feat, camera.width,
-                bins.n_tx, camera.near, camera.far, *aux, n_contrib, med_local,
-                _np(g_feat), _np(g_alpha), _np(g_dsum), _np(g_nrm), _np(g_med), _np(g_dist), slots,
-            )  # fmt: skip
-        grads = np.zeros((P, K.G_FIXED + C), np.float64)
-        K.reduce_slots(bins.emit_start, bins.slot_of_emit, slots, grads)
-        g = torch.from_numpy(grads.astype(feat.dtype, copy=False))
-        return (
-            g[:, K.G_T : K.G_T + 9].reshape(P, 3, 3),
-            g[:, K.G_OPACITY],
-            g[:, K.G_NORMAL : K.G_NORMAL + 3],
-            g[:, K.G_FEATURE :],
-            None,
-            None,
-        )
-
-
-def render(proj: Projected, camera: Camera) -> tuple[list[Tensor], Bins]:
-    """Raw maps ``[features, alpha, depth_sum, normal_cam, median, distortion]`` and the bins."""
-    bins = make_bins(proj, camera)
-    outs = _Rasterize.apply(proj.T, proj.opacities, proj.normals_cam, proj.colors, bins, camera)
-    return list(outs), bins

@@ -164,6 +164,14 @@ def support_boxes(T: Tensor, opacities: Tensor, camera: Camera) -> tuple[Tensor,
     return box, radii, in_range, visible
 
 
+def colors_of(surfels: Surfels, camera: Camera) -> Tensor:
+    """``(P, C)`` colours: the features, or the SH evaluated towards the camera centre."""
+    if surfels.sh_degree is None:
+        return surfels.features
+    dirs = F.normalize(surfels.means - camera.cam_center.to(surfels.means.dtype), dim=-1)
+    return eval_sh(surfels.sh_degree, surfels.features, dirs)
+
+
 def project(surfels: Surfels, camera: Camera, *, track_means2d: bool) -> Projected:
     """Build the per-surfel data of ``surfels`` seen by ``camera`` (see module doc).
 
@@ -199,12 +207,7 @@ def project(surfels: Surfels, camera: Camera, *, track_means2d: bool) -> Project
     facing = -torch.sign((n_cam * p_cam).sum(-1)).detach()
     normals_cam = n_cam * facing[:, None]
 
-    if surfels.sh_degree is None:
-        colors = surfels.features
-    else:
-        cam_center = camera.cam_center.to(dtype)
-        dirs = F.normalize(surfels.means - cam_center, dim=-1)
-        colors = eval_sh(surfels.sh_degree, surfels.features, dirs)
+    colors = colors_of(surfels, camera)
 
     box, radii, in_range, visible = support_boxes(T, surfels.opacities, camera)
     key = torch.where(visible, depth, torch.full_like(depth, math.inf))
