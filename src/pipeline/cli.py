@@ -15,6 +15,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("pipeline.stages.evaluate", "DTU Chamfer distance of a mesh (mm)"),
     "init": ("pipeline.stages.init", "initial point cloud of a scene (mvs, sfm, mast3r or random)"),
     "tsdf": ("pipeline.stages.tsdf", "TSDF-fuse an init folder's depth maps into a cleaned mesh (mm)"),
+    "baseline": ("pipeline.stages.baseline", "init clouds of every backend and the MVS+TSDF mesh vs GT, timed"),
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
     "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
 }

@@ -9,7 +9,6 @@ import argparse
 import dataclasses
 import json
 import os
-import resource
 import shutil
 import tempfile
 import time
@@ -22,6 +21,18 @@ from pipeline.data.dtu import load_scene
 from pipeline.data.scene import Scene, SceneError
 from pipeline.init import BACKEND_MODULES, run_backend
 from pipeline.init.io import InitResult, depth_path, write_depth, write_ply
+
+
+def peak_rss_mb() -> float | None:
+    """This process's peak resident memory (MB) since its exec (Linux ``VmHWM``; the
+    rusage figure would include a parent's size from before the exec)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return round(int(line.split()[1]) / 1024.0, 1)
+    except OSError:
+        pass
+    return None
 
 
 def check_scene(scene: Scene) -> None:
@@ -73,7 +84,7 @@ def run_init(scene_dir: str | Path, out_dir: str | Path, cfg: InitConfig) -> tup
         "num_points": len(result.cloud),
         "config": dataclasses.asdict(cfg),
         "time_s": round(time.perf_counter() - t0, 2),
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+        "peak_rss_mb": peak_rss_mb(),
         **result.info,
     }
     write_outputs(out_dir, result, info)

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import resource
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from pipeline.data.dtu import load_scene
 from pipeline.data.scene import SceneError
 from pipeline.init.io import read_depth
 from pipeline.meshing import tsdf
+from pipeline.stages.init import peak_rss_mb
 
 
 def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, voxel_norm: float = 0.004, trunc_norm: float = 0.016,
@@ -71,6 +71,6 @@ def run(args: argparse.Namespace) -> int:
                                 args.min_fraction)
     tsdf.write_mesh(args.out, mesh)
     info.update(time_s=round(time.perf_counter() - t0, 2),
-                peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1))
+                peak_rss_mb=peak_rss_mb())
     print(json.dumps(info))
     return 0
