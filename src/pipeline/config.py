@@ -72,13 +72,12 @@ class MVSConfig:
     min_ncc: float = 0.5  # winner's mean NCC below this -> invalid
     min_std: float = 0.01  # reference window std (grey in [0, 1]) below this -> textureless, invalid
     sphere_margin: float = 1.0  # depth range: rays crossed with the unit sphere scaled by this
-    chunk: int = 8  # planes processed at once
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
             raise ValueError(f"init.mvs.window must be odd and >= 3, got {self.window}")
-        if self.depth_step_px <= 0 or self.max_depths < 3 or self.chunk < 1:
-            raise ValueError("init.mvs: depth_step_px must be > 0, max_depths >= 3, chunk >= 1")
+        if self.depth_step_px <= 0 or self.max_depths < 3:
+            raise ValueError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
 
 
 @dataclass
@@ -197,6 +196,7 @@ SECTIONS: dict[str, type] = {
     "synth": SynthConfig,
     "evaluate": EvaluateConfig,
     "loss": LossConfig,
+    "init": InitConfig,
     "priors": PriorsConfig,
 }
 

@@ -2,7 +2,7 @@
 
 For each reference view, fronto-parallel planes (uniform in inverse depth, so roughly
 one pixel of disparity apart) sweep the depth range where the reference rays cross the
-scene's unit sphere. Each source view is warped onto every plane (``grid_sample``) and
+scene's unit sphere. Each source view is warped onto every plane (bilinear, a numba kernel) and
 compared with the reference by zero-mean normalised cross-correlation over a square
 window (box filters), which is invariant to gain and offset changes of the lighting.
 The per-pixel score is the mean NCC over the source views that see the point;
@@ -19,9 +19,8 @@ import math
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
-import torch
-import torch.nn.functional as F
 
 from pipeline import geometry
 from pipeline.config import InitConfig, MVSConfig
@@ -62,6 +61,64 @@ def box_mean(x: np.ndarray, k: int) -> np.ndarray:
     """Mean over a ``k x k`` window of a 2-D float32 array (OpenCV's box filter, which
     keeps float64 running sums: NCC subtracts nearly equal window moments)."""
     return cv2.boxFilter(x, -1, (k, k), normalize=True, borderType=cv2.BORDER_REFLECT_101)
+
+
+@numba.njit(parallel=True, cache=True)
+def _warp_moments(A, b, z, img, smask, R, x0, y0, mom, in_mask, seen) -> None:
+    """Warp a source onto the plane at reference depth ``z`` (mm).
+
+    Reference pixel ``(x0 + x, y0 + y)`` maps to source pixel ``q = A [x, y, 1] z + b``
+    (homogeneous). Writes ``mom[y, x] = (S, S*S, R*S)`` with ``S`` the bilinear source
+    sample (coordinates clamped to the image, so windows at the border stay defined),
+    ``seen`` (in front and inside the image) and ``in_mask`` (source mask, nearest).
+    """
+    h, w = R.shape
+    H, W = img.shape
+    for y in numba.prange(h):
+        py = y0 + y
+        for x in range(w):
+            px = x0 + x
+            q0 = (A[0, 0] * px + A[0, 1] * py + A[0, 2]) * z + b[0]
+            q1 = (A[1, 0] * px + A[1, 1] * py + A[1, 2]) * z + b[1]
+            q2 = (A[2, 0] * px + A[2, 1] * py + A[2, 2]) * z + b[2]
+            s = 0.0
+            ok = False
+            if q2 > 0:
+                u = q0 / q2
+                v = q1 / q2
+                ok = (u >= 0) and (u <= W - 1) and (v >= 0) and (v <= H - 1)
+                uc = min(max(u, 0.0), W - 1.0)
+                vc = min(max(v, 0.0), H - 1.0)
+                i0 = min(int(vc), H - 2)
+                j0 = min(int(uc), W - 2)
+                fy = vc - i0
+                fx = uc - j0
+                s = ((1 - fy) * ((1 - fx) * img[i0, j0] + fx * img[i0, j0 + 1])
+                     + fy * ((1 - fx) * img[i0 + 1, j0] + fx * img[i0 + 1, j0 + 1]))
+                in_mask[y, x] = smask[int(vc + 0.5), int(uc + 0.5)]
+            seen[y, x] = ok
+            mom[y, x, 0] = s
+            mom[y, x, 1] = s * s
+            mom[y, x, 2] = R[y, x] * s
+
+
+@numba.njit(parallel=True, cache=True)
+def _accumulate_ncc(moments, mu_r, var_r, in_mask, seen, acc, cnt) -> None:
+    """NCC from window moments (``E[S], E[S^2], E[RS]``), added to ``acc``/``cnt`` where
+    the source sees the point; -1 where it sees it outside its object mask."""
+    h, w = mu_r.shape
+    for y in numba.prange(h):
+        for x in range(w):
+            if not seen[y, x]:
+                continue
+            if in_mask[y, x] > 0.5:
+                mu_s = moments[y, x, 0]
+                var_s = max(moments[y, x, 1] - mu_s * mu_s, 0.0)
+                ncc = (moments[y, x, 2] - mu_r[y, x] * mu_s) / np.sqrt(var_r[y, x] * var_s + 1e-8)
+            else:
+                ncc = -1.0
+            acc[y, x] += ncc
+            cnt[y, x] += 1.0
 
 
 @dataclass
@@ -117,74 +174,52 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
     D = int(min(params.max_depths, max(3, math.ceil(span / params.depth_step_px) + 1)))
     inv_planes = np.linspace(1.0 / z_far, 1.0 / z_near, D)  # index 0 = far
 
-    t = lambda a: torch.from_numpy(np.ascontiguousarray(a, dtype=np.float32))  # noqa: E731
     ref_img = np.ascontiguousarray(grey[ref, y0:y1, x0:x1], dtype=np.float32)
     mu_r = box_mean(ref_img, k)
     var_r = np.maximum(box_mean(ref_img * ref_img, k) - mu_r * mu_r, 0.0)
     near_b = np.nan_to_num(near, nan=np.inf).reshape(h, w)
     far_b = np.nan_to_num(far, nan=-np.inf).reshape(h, w)
-    pix_h = t(np.c_[pix, np.ones(len(pix))].T).reshape(3, h, w)
     src_data = []
     for s, (A, b) in zip(srcs, warps):
-        Ap = torch.einsum("ij,jhw->ihw", t(A), pix_h)
-        smask = scene.masks[s] if scene.masks is not None else np.ones((H, W))
-        # Image and mask warped together (one grid_sample); the mask is tested at > 0.5.
-        src_data.append((Ap, t(b).view(3, 1, 1), t(np.stack([grey[s], smask]))[None]))
+        smask = scene.masks[s] if scene.masks is not None else np.ones((H, W), bool)
+        src_data.append((A, b, np.ascontiguousarray(grey[s], dtype=np.float32), np.ascontiguousarray(smask, bool)))
 
     cost = np.empty((D, h, w), dtype=np.float32)
-    eps = np.float32(1e-8)
-    for c0 in range(0, D, params.chunk):
-        z_chunk = 1.0 / inv_planes[c0:c0 + params.chunk]
-        zs = t(z_chunk).view(-1, 1, 1, 1)
-        C = zs.shape[0]
-        acc = np.zeros((C, h, w), np.float32)
-        cnt = np.zeros((C, h, w), np.float32)
-        for Ap, b, img in src_data:
-            q = Ap.unsqueeze(0) * zs + b.unsqueeze(0)  # (C, 3, h, w)
-            z = q[:, 2:3]
-            u = q[:, 0:1] / z
-            v = q[:, 1:2] / z
-            # align_corners=True: normalised -1 / +1 are the centres of the first / last pixel.
-            grid = torch.cat([u / (W - 1) * 2 - 1, v / (H - 1) * 2 - 1], 1).permute(0, 2, 3, 1)
-            warped = F.grid_sample(img.expand(C, 2, H, W), grid, mode="bilinear", padding_mode="border",
-                                   align_corners=True).numpy()
-            seen = ((z > 0) & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1))[:, 0].numpy()
-            for c in range(C):
-                S = warped[c, 0]
-                mu_s = box_mean(S, k)
-                var_s = np.maximum(box_mean(S * S, k) - mu_s * mu_s, 0.0)
-                ncc = (box_mean(ref_img * S, k) - mu_r * mu_s) / np.sqrt(var_r * var_s + eps)
-                # A point that the source sees outside its object mask cannot be on the object.
-                ncc[warped[c, 1] <= 0.5] = -1.0
-                acc[c] += np.where(seen[c], ncc, 0.0)
-            cnt += seen
-        score = np.where(cnt > 0, acc / np.maximum(cnt, 1.0), -1.0)
+    mom = np.empty((h, w, 3), np.float32)
+    in_mask = np.zeros((h, w), bool)
+    seen = np.zeros((h, w), bool)
+    for d in range(D):
+        z = 1.0 / inv_planes[d]
+        acc = np.zeros((h, w), np.float32)
+        cnt = np.zeros((h, w), np.float32)
+        for A, b, img, smask in src_data:
+            _warp_moments(A, b, z, img, smask, ref_img, x0, y0, mom, in_mask, seen)
+            moments = cv2.boxFilter(mom, -1, (k, k), borderType=cv2.BORDER_REFLECT_101)
+            _accumulate_ncc(moments, mu_r, var_r, in_mask, seen, acc, cnt)
         # Hypotheses outside the sphere interval of a pixel's own ray cannot be the object.
-        outside = (z_chunk[:, None, None] < near_b) | (z_chunk[:, None, None] > far_b)
-        cost[c0:c0 + C] = np.where(outside, -1.0, score)
+        cost[d] = np.where((cnt > 0) & (z >= near_b) & (z <= far_b), acc / np.maximum(cnt, 1.0), -1.0)
 
-    cost = torch.from_numpy(cost)
-    best_score, best = cost.max(0)
-    idx = best.clamp(1, D - 2)
-    c_m = cost.gather(0, (idx - 1).unsqueeze(0))[0]
-    c_0 = cost.gather(0, idx.unsqueeze(0))[0]
-    c_p = cost.gather(0, (idx + 1).unsqueeze(0))[0]
+    best = cost.argmax(0)
+    best_score = np.take_along_axis(cost, best[None], 0)[0]
+    idx = np.clip(best, 1, D - 2)
+    c_m = np.take_along_axis(cost, (idx - 1)[None], 0)[0]
+    c_0 = np.take_along_axis(cost, idx[None], 0)[0]
+    c_p = np.take_along_axis(cost, (idx + 1)[None], 0)[0]
     curv = c_m - 2 * c_0 + c_p
     interior = (best > 0) & (best < D - 1) & (curv < 0)
-    offset = torch.where(interior, 0.5 * (c_m - c_p) / torch.where(interior, curv, torch.ones_like(curv)), torch.zeros_like(curv))
-    offset = offset.clamp(-0.5, 0.5)
+    # Vertex of the parabola through the three scores, in plane units.
+    offset = np.clip(np.where(interior, 0.5 * (c_m - c_p) / np.where(interior, curv, 1.0), 0.0), -0.5, 0.5)
     step = (inv_planes[-1] - inv_planes[0]) / (D - 1)
-    inv_d = torch.from_numpy(inv_planes).float()[best] + offset * float(step)
-    depth = (1.0 / inv_d).numpy()
+    depth = (1.0 / (inv_planes[best] + offset * step)).astype(np.float32)
 
     valid = (
         mask[y0:y1, x0:x1]
-        & interior.numpy()
-        & (best_score.numpy() >= params.min_ncc)
+        & interior
+        & (best_score >= params.min_ncc)
         & (np.sqrt(var_r) >= params.min_std)
     )
     out.depth_mm[y0:y1, x0:x1] = np.where(valid, depth, 0.0)
-    out.score[y0:y1, x0:x1] = np.where(valid, best_score.numpy(), -1.0)
+    out.score[y0:y1, x0:x1] = np.where(valid, best_score, -1.0)
     out.valid[y0:y1, x0:x1] = valid
     out.num_depths = D
     return out
