@@ -110,3 +110,9 @@ def test_sh_degree_zero_is_the_dc_colour():
     col = eval_sh(0, sh, torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64))
     assert col.tolist()[0] == pytest.approx([0.28209479177387814 * 0.3 + 0.5, 0.28209479177387814 * -0.2 + 0.5,
                                              0.28209479177387814 + 0.5])  # fmt: skip
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the message given without CUDA")
+def test_cuda_backend_without_cuda_raises():
+    with pytest.raises(ValueError, match="CUDA device"):
+        rasterize(Surfels(**good(dtype=torch.float32)), Camera(**CAM), backend="cuda")

@@ -1,0 +1,83 @@
+"""The ``cuda`` backend: gsplat's ``rasterization_2dgs`` mapped onto ``RenderOutput``.
+
+gsplat is imported lazily (installing it pulls a CUDA build of torch; it is not a
+dependency of this package). Mapping and known differences (docs/rasterizer.md):
+
+* pixel centres: gsplat puts them at ``+0.5``, so ``cx, cy`` are shifted by 0.5;
+* depth: gsplat composites the surfel *centre* depth ``z_c`` per surfel, not the
+  ray–splat intersection: ``depth_expected = sum w z_c / (sum w + eps)`` and
+  ``depth_median`` is the median surfel's ``z_c``;
+* distortion: gsplat's own is an L1 form on ``z_c``; instead the 2DGS L2 distortion is
+  rebuilt from two extra channels, ``sum w dm`` and ``sum w dm^2`` with
+  ``dm = m(z_c) - m_ref``: ``distortion = A M2 - M1^2`` (an exact identity; ``m_ref``, a
+  per-image constant, only reduces float32 cancellation);
+* alpha cap 0.999 (ours 0.99), stop when ``T <= 1e-4`` (ours ``< 1e-4``), no per-pixel
+  near-plane skip, low-pass centre = centre of the 3-sigma bounding box;
+* ``means2d``: the AABB centres (shifted to integer pixel centres); its ``.grad`` is
+  gsplat's densification gradient ``(dL/dT_02, dL/dT_12) * z_c``.
+"""
+from __future__ import annotations
+
+import torch
+
+from pipeline.rasterizer.project import colors_of
+from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
+
+
+def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float) -> RenderOutput:
+    if not torch.cuda.is_available():
+        raise ValueError("the cuda backend needs a CUDA device; none is available")
+    try:
+        from gsplat import rasterization_2dgs
+    except ImportError as exc:
+        raise ValueError("the cuda backend needs gsplat (pip install gsplat with a CUDA torch)") from exc
+    if surfels.means.device.type != "cuda" or surfels.means.dtype != torch.float32:
+        raise ValueError(f"the cuda backend needs float32 CUDA tensors, got {surfels.means.dtype} on {surfels.means.device}")
+    dev = surfels.means.device
+    w2c = camera.world_to_cam.to(dev, torch.float32)
+    K = camera.K.clone()
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    K = K.to(dev, torch.float32)
+    near, far = camera.near, camera.far
+
+    colors = colors_of(surfels, camera)
+    C = colors.shape[1]
+    z_c = surfels.means @ w2c[:3, 2] + w2c[2, 3]
+    m = far / (far - near) * (1.0 - near / z_c.clamp_min(near))
+    in_range = (z_c >= near) & (z_c <= far)
+    m_ref = m[in_range].median().detach() if bool(in_range.any()) else m.new_zeros(())
+    dm = (m - m_ref)[:, None]
+    feats = torch.cat([colors, dm, dm * dm], dim=1)
+    scales3 = torch.cat([surfels.scales, torch.ones_like(surfels.scales[:, :1])], dim=1)  # 3rd is unused in 2DGS
+
+    render, alphas, normals_world, _, _, median, meta = rasterization_2dgs(
+        surfels.means, surfels.quats, scales3, surfels.opacities, feats, w2c[None], K[None],
+        camera.width, camera.height, near_plane=near, far_plane=far, render_mode="RGB+D", packed=False,
+    )  # fmt: skip
+    render, alpha = render[0], alphas[0, ..., 0]
+    M1, M2, depth_sum = render[..., C], render[..., C + 1], render[..., C + 2]
+    normal_world = normals_world[0]
+
+    means2d = (meta["means2d"][0].detach() - 0.5).requires_grad_(torch.is_grad_enabled())
+    densify = meta["gradient_2dgs"]
+    if densify.requires_grad:
+
+        def _copy_grad(g: torch.Tensor) -> None:
+            means2d.grad = g[0].clone() if means2d.grad is None else means2d.grad + g[0]
+
+        densify.register_hook(_copy_grad)
+    radii = meta["radii"][0]
+    if radii.ndim == 2:  # newer gsplat: per-axis radii
+        radii = radii.amax(-1)
+    return RenderOutput(
+        features=render[..., :C],
+        alpha=alpha,
+        depth_expected=depth_sum / (alpha + depth_eps),
+        depth_median=median[0, ..., 0],
+        normal_cam=normal_world @ w2c[:3, :3].T,  # n_cam = R_wc n_world, as rows
+        normal_world=normal_world,
+        distortion=(alpha * M2 - M1 * M1).clamp_min(0.0),
+        radii=radii.to(torch.int32),
+        means2d=means2d,
+    )
