@@ -18,6 +18,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "baseline": ("pipeline.stages.baseline", "init clouds of every backend and the MVS+TSDF mesh vs GT, timed"),
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
     "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
+    "bench-raster": ("pipeline.rasterizer.bench", "benchmark the surfel rasterizer"),
 }
 
 
