@@ -34,7 +34,7 @@ def test_cloud_on_the_surface_scores_near_zero(sphere_gt):
     assert m["surface"] == "GT mesh"
     assert m["median_to_surface_mm"] < 0.05  # tessellation of the GT sphere only
     assert m["precision_1mm"] == 1.0 and m["recall_1mm"] > 0.99
-    assert m["accuracy_mm"] < 0.6 and m["completeness_mm"] < 0.6  # GT points are ~1 mm apart
+    assert m["accuracy_mm"] < 1.0 and m["completeness_mm"] < 1.0  # GT points are 1-2 mm apart
 
 
 def test_cloud_offset_is_measured(sphere_gt):
