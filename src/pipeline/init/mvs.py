@@ -111,7 +111,7 @@ def _accumulate_ncc(moments, mu_r, var_r, in_mask, seen, acc, cnt) -> None:
         for x in range(w):
             if not seen[y, x]:
                 continue
-            if in_mask[y, x] > 0.5:
+            if in_mask[y, x]:
                 mu_s = moments[y, x, 0]
                 var_s = max(moments[y, x, 1] - mu_s * mu_s, 0.0)
                 ncc = (moments[y, x, 2] - mu_r[y, x] * mu_s) / np.sqrt(var_r[y, x] * var_s + 1e-8)
