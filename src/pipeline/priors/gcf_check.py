@@ -52,22 +52,47 @@ def relief_curve(camera_source: Path, width: int, height: int, deltas_mm: np.nda
     return curve, info
 
 
+def init_depth_curve(scene_dir: Path, init_dir: Path, deltas_mm: np.ndarray) -> tuple[np.ndarray, dict]:
+    """The offset curve on a real scene, around the init stage's depth of its first view.
+
+    Not ground truth: that depth was itself found by maximising NCC, so a minimum at 0
+    mostly shows that the features agree across the real views' lighting.
+    """
+    from pipeline.init.io import depth_path, read_depth
+
+    scene = dtu.load_scene(scene_dir, view_ids=None)
+    d = read_depth(depth_path(init_dir, scene.view_ids[0]))
+    depth = np.where(d.valid, d.depth_mm, np.nan)
+    curve = offset_curve(scene.images, scene.K, scene.world_to_cam, depth, deltas_mm)
+    info = {"scene": f"{scene_dir} (real images)", "reference_depth": f"{init_dir} (init stage, valid pixels)",
+            "width": scene.width, "height": scene.height, "reference_view": scene.view_ids[0],
+            "valid_fraction": round(float(d.valid.mean()), 4)}
+    return curve, info
+
+
+def summarise(deltas: np.ndarray, curve: np.ndarray, info: dict) -> dict:
+    i = int(np.argmin(curve))
+    return {**info, "loss": [round(float(v), 6) for v in curve], "argmin_delta_mm": float(deltas[i]),
+            "loss_at_0": float(curve[np.argmin(np.abs(deltas))]), "loss_at_minus10": float(curve[0]),
+            "loss_at_plus10": float(curve[-1])}
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     p.add_argument("--cameras", default="data/raw/dtu/scan24")
     p.add_argument("--width", type=int, default=800)
     p.add_argument("--height", type=int, default=600)
+    p.add_argument("--scene", default=None, help="also: a prepared real scene ...")
+    p.add_argument("--init-dir", default=None, help="... and its init output (reference depth)")
     p.add_argument("--out", default="reports/priors")
     args = p.parse_args(argv)
-    deltas = np.round(np.arange(-10.0, 10.0 + 1e-9, 0.25), 6)
+    deltas = np.round(np.arange(-10.0, 10.0 + 1e-9, 0.5), 6)
     t0 = time.perf_counter()
-    curve, info = relief_curve(Path(args.cameras), args.width, args.height, deltas)
-    info["seconds"] = round(time.perf_counter() - t0, 1)
-    i = int(np.argmin(curve))
-    result = {**info, "features": "default (5x5 normalised patches at scales 1 and 2, 1/2 resolution)",
-              "delta_mm": deltas.tolist(), "loss": [round(float(v), 6) for v in curve],
-              "argmin_delta_mm": float(deltas[i]), "loss_at_0": float(curve[np.argmin(np.abs(deltas))]),
-              "loss_at_minus10": float(curve[0]), "loss_at_plus10": float(curve[-1])}
+    curves = {"synthetic": summarise(deltas, *relief_curve(Path(args.cameras), args.width, args.height, deltas))}
+    if args.scene and args.init_dir:
+        curves["real"] = summarise(deltas, *init_depth_curve(Path(args.scene), Path(args.init_dir), deltas))
+    result = {"features": "default (5x5 normalised patches at dilations 1 and 2, 1/2 resolution)",
+              "delta_mm": deltas.tolist(), "curves": curves, "seconds": round(time.perf_counter() - t0, 1)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "gcf_vs_depth_offset.json").write_text(json.dumps(result, indent=1) + "\n")
@@ -77,17 +102,21 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6, 3.6), dpi=120)
-    ax.plot(deltas, curve, "-o", ms=2.5)
+    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=120)
+    labels = {"synthetic": "rendered relief plate, true depth", "real": "scan24 real images, init MVS depth"}
+    for k, (name, c) in enumerate(curves.items()):
+        ax.plot(deltas, c["loss"], "-o", ms=2.5, color=f"C{k}",
+                label=f"{labels[name]} (argmin {c['argmin_delta_mm']:+.1f} mm)")
     ax.axvline(0.0, color="0.6", lw=0.8, ls="--")
-    ax.axvline(deltas[i], color="C3", lw=0.8, label=f"argmin = {deltas[i]:+.2f} mm")
     ax.set_xlabel("depth offset delta (mm, camera z of the reference view)")
     ax.set_ylabel("L_gcf (Eq. 4-9)")
-    ax.set_title(f"GCF loss vs depth offset, default features, {args.width}x{args.height}", fontsize=9)
-    ax.legend(fontsize=8)
+    ax.set_title(f"GCF loss vs depth offset, default features, {args.width}x{args.height}, views 23 | 24, 33", fontsize=9)
+    ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(out / "gcf_vs_depth_offset.png")
-    print(f"argmin delta = {deltas[i]:+.2f} mm; wrote {out}/gcf_vs_depth_offset.{{json,png}}")
+    for name, c in curves.items():
+        print(f"{name}: argmin delta = {c['argmin_delta_mm']:+.2f} mm")
+    print(f"wrote {out}/gcf_vs_depth_offset.{{json,png}}")
     return 0
 
 
