@@ -76,3 +76,32 @@ def test_written_mesh_reads_back(fused, tmp_path):
     m = o3d.io.read_triangle_mesh(str(tmp_path / "m.ply"))
     assert len(m.triangles) == len(mesh.triangles)
     assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]
+
+
+def test_cli_meshes_an_init_folder(tmp_path, capsys):
+    import json
+
+    from pipeline.cli import main
+    from pipeline.data.dtu import write_scene
+    from pipeline.evaluation.gt import read_mesh
+    from pipeline.init.io import DepthMap, depth_path, write_depth
+
+    scene, gt = make_scene(200, 150)
+    ids = scene.view_ids
+    scene_dir = write_scene(tmp_path / "scene", images=dict(zip(ids, scene.images)), K=dict(zip(ids, scene.K)),
+                            world_to_cam=dict(zip(ids, scene.world_to_cam)), norm_to_world=scene.norm_to_world,
+                            masks=dict(zip(ids, scene.masks)))
+    init_dir = tmp_path / "init"
+    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(tmp_path / "m.ply")]) == 1
+    assert "no depth maps" in capsys.readouterr().err
+    for i, v in enumerate(ids):
+        valid = np.isfinite(gt[i])
+        write_depth(depth_path(init_dir, v), DepthMap(v, np.where(valid, gt[i], 0.0).astype(np.float32),
+                                                     valid.astype(np.float32), valid, scene.K[i], scene.world_to_cam[i]))
+    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(tmp_path / "m.ply"),
+                 "--num-clusters", "2"]) == 0
+    facts = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    V, F = read_mesh(tmp_path / "m.ply")
+    assert len(F) == facts["triangles_kept"] > 1000
+    # At 200x150 a pixel (~1.8 mm) is coarser than a voxel (0.92 mm): a looser bound than above.
+    assert np.median(distance_to_spheres(V, scene)) < facts["voxel_mm"]
