@@ -119,12 +119,24 @@ def test_gcf_ignores_points_behind_or_outside_sources(tiny):
     assert torch.isfinite(terms).all()
 
 
-def test_zero_features_have_defined_cosine():
-    a = torch.zeros(5, 3)
-    b = torch.randn(5, 3)
+def test_zero_features_have_defined_cosine_and_finite_gradients(tiny):
+    a = torch.zeros(5, 3, requires_grad=True)
+    b = torch.randn(5, 3, requires_grad=True)
     c = cosine(a, b)
     assert torch.equal(c, torch.zeros(3))
+    c.sum().backward()
+    assert torch.isfinite(a.grad).all() and torch.isfinite(b.grad).all()
     assert torch.allclose(cosine(b, 2 * b), torch.ones(3))
+    # Flat (zero) regions in the features: the loss and its depth gradient stay finite.
+    H, W, K, cams, feats, depth = tiny
+    feats = [f.copy() for f in feats]
+    feats[0][:, :, :2] = 0.0
+    feats[1][:, 1:, :] = 0.0
+    t = torch.from_numpy
+    d = t(depth).requires_grad_()
+    loss = gcf_loss(d, K, cams[0], t(feats[0]), [(K, cams[i], t(feats[i])) for i in (1, 2)])
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(d.grad).all()
 
 
 def test_sample_features_pixel_centres():

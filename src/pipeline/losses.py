@@ -52,8 +52,10 @@ def sample_features(feats: torch.Tensor, pix: torch.Tensor, image_size: tuple[in
 def cosine(a: torch.Tensor, b: torch.Tensor, dim: int = 0) -> torch.Tensor:
     """Cosine similarity along ``dim``; 0 where either vector is (numerically) zero."""
     num = (a * b).sum(dim)
-    den = torch.sqrt((a * a).sum(dim) * (b * b).sum(dim))
-    return num / den.clamp_min(COS_EPS)
+    # Clamp before the square root: sqrt'(0) is infinite and would turn the zero gradient
+    # of a clamped entry into NaN.
+    den = torch.sqrt(((a * a).sum(dim) * (b * b).sum(dim)).clamp_min(COS_EPS * COS_EPS))
+    return num / den
 
 
 def gcf_loss(
