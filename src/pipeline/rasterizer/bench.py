@@ -8,11 +8,13 @@ backend and case) and ``rasterizer.md`` (a table with the cpu/reference speed ra
 ``pairs`` is the number of pixel-surfel pairs inside the support boxes (the work the
 scene defines, identical for both backends); ``pairs_per_s = pairs / (forward_s +
 backward_s)``. ``peak_mb`` is the peak resident memory above the level before the case
-(sampled every 2 ms), i.e. the extra memory of one forward + backward.
+(sampled every 2 ms, after returning freed heap pages to the OS), i.e. the extra memory
+of one forward + backward.
 """
 from __future__ import annotations
 
 import argparse
+import ctypes
 import gc
 import json
 import os
@@ -41,8 +43,8 @@ MAPS = ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "no
 # Reference memory per evaluated (pixel, surfel) pair in a block, measured on small
 # cases (float32 autograd graph of reference._composite); used to skip cases that
 # would not fit.
-REF_BYTES_PER_PAIR = 260
-REF_BLOCK = 16
+REF_BYTES_PER_PAIR = 150
+REF_BLOCK = 8
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,6 +54,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--reference-budget-gb", type=float, default=8.0, help="skip reference cases estimated above this memory"
     )
+
+
+def _trim_heap() -> None:
+    """Return freed heap pages to the OS (glibc), so that reused memory shows in RSS."""
+    try:
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    except (OSError, AttributeError):
+        pass
 
 
 class _PeakRSS:
@@ -64,6 +74,7 @@ class _PeakRSS:
 
     def __enter__(self) -> _PeakRSS:
         gc.collect()
+        _trim_heap()
         self.base = self.proc.memory_info().rss
         self.peak = self.base
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -120,7 +131,7 @@ def _centre_depth_deviation(s: Surfels, cam) -> dict:
     intersection depth, measured with the cpu kernel on the same weights: render the
     centre depth as a feature channel and compare with ``depth_expected``."""
     with torch.no_grad():
-        z_c = s.means.double() @ cam.world_to_cam[:3, 2] + cam.world_to_cam[2, 3]
+        z_c = s.means.double() @ cam.world_to_cam[2, :3] + cam.world_to_cam[2, 3]
         probe = Surfels(s.means, s.quats, s.scales, s.opacities, z_c[:, None].to(s.means.dtype))
         out = rasterize(probe, cam, "cpu")
         hit = out.alpha > 0.5
@@ -278,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
         else:
             print(
                 f"[{i}/{len(jobs)}] {backend:9s} {W}x{H} {N:>6d} surfels: forward {rec['forward_s']:.3f} s, "
-                f"backward {rec['backward_s']:.3f} s, {rec['pairs_per_s'] / 1e6:.1f} M pairs/s, "
+                f"backward {rec['backward_s']:.3f} s, {rec['pairs_per_s']:.3g} pairs/s, "
                 f"peak {rec['peak_mb']:.0f} MB, load {rec['load_avg_1min'][0]:.1f}",
                 flush=True,
             )

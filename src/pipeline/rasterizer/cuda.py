@@ -43,7 +43,7 @@ def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float) -> RenderOu
 
     colors = colors_of(surfels, camera)
     C = colors.shape[1]
-    z_c = surfels.means @ w2c[:3, 2] + w2c[2, 3]
+    z_c = surfels.means @ w2c[2, :3] + w2c[2, 3]  # camera z of the centres
     m = far / (far - near) * (1.0 - near / z_c.clamp_min(near))
     in_range = (z_c >= near) & (z_c <= far)
     m_ref = m[in_range].median().detach() if bool(in_range.any()) else m.new_zeros(())
