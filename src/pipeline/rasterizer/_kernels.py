@@ -415,7 +415,6 @@ def backward(
     """
     height = aux_T.shape[0]
     C = feat.shape[1]
-    G = slots.shape[1]
     mscale = far / (far - near)
     for it in prange(tile_order.shape[0]):
         t = tile_order[it]
@@ -448,12 +447,15 @@ def backward(
         start = tile_start[t]
         for j in range(start + max_last, tile_start[t + 1]):
             slots[j, :] = 0.0
-        acc = np.empty(G)
+        gfe = np.empty(C)
         fs = np.empty(C)
         for j in range(start + max_last - 1, start - 1, -1):
             li = j - start
             s = tile_list[j]
-            acc[:] = 0.0
+            # Scalar accumulators stay in registers (see S_* for their meaning).
+            gax0 = gax1 = gax2 = gay0 = gay1 = gay2 = g00 = g01 = g02 = 0.0
+            gdet = gcx = gcy = gtw2 = gop = gn_0 = gn_1 = gn_2 = 0.0
+            gfe[:] = 0.0
             ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
             ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
             a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
@@ -491,16 +493,16 @@ def backward(
                     Wt = aux_W[py, px]
                     M1t = aux_M1[py, px]
                     gd = float(g_dist[py, px])
-                    gn0, gn1, gn2 = gN[p, 0], gN[p, 1], gN[p, 2]
-                    vsum = gA[p] + gD[p] * z + gn0 * n0 + gn1 * n1 + gn2 * n2
+                    gq0, gq1, gq2 = gN[p, 0], gN[p, 1], gN[p, 2]
+                    vsum = gA[p] + gD[p] * z + gq0 * n0 + gq1 * n1 + gq2 * n2
                     vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
                     for c in range(C):
                         gf = float(g_feat[py, px, c])
                         vsum += gf * fs[c]
-                        acc[S_FEATURE + c] += gf * w
-                    acc[S_NORMAL] += gn0 * w
-                    acc[S_NORMAL + 1] += gn1 * w
-                    acc[S_NORMAL + 2] += gn2 * w
+                        gfe[c] += gf * w
+                    gn_0 += gq0 * w
+                    gn_1 += gq1 * w
+                    gn_2 += gq2 * w
                     dL_da = T * vsum - S[p] * r
                     S[p] += w * vsum
                     dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
@@ -508,30 +510,36 @@ def backward(
                         dz += float(g_med[py, px])
                     drho = 0.0
                     if a_raw < ALPHA_MAX:  # the cap has zero derivative
-                        acc[S_OPACITY] += dL_da * Gv
+                        gop += dL_da * Gv
                         drho = -0.5 * Gv * o * dL_da
                     if use3:
                         # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
                         dq0 = 2.0 * drho * u * inv
                         dq1 = 2.0 * drho * v * inv
                         dq2 = -(2.0 * drho * (u * u + v * v) + dz * z) * inv
-                        acc[S_AX] += x * dq0
-                        acc[S_AX + 1] += x * dq1
-                        acc[S_AX + 2] += x * dq2
-                        acc[S_AY] += y * dq0
-                        acc[S_AY + 1] += y * dq1
-                        acc[S_AY + 2] += y * dq2
-                        acc[S_A0] += dq0
-                        acc[S_A0 + 1] += dq1
-                        acc[S_A0 + 2] += dq2
-                        acc[S_DET] += dz * inv
+                        gax0 += x * dq0
+                        gax1 += x * dq1
+                        gax2 += x * dq2
+                        gay0 += y * dq0
+                        gay1 += y * dq1
+                        gay2 += y * dq2
+                        g00 += dq0
+                        g01 += dq1
+                        g02 += dq2
+                        gdet += dz * inv
                     else:
                         # rho2 = 2 |(x, y) - c|^2, z = centre depth T_w2.
-                        acc[S_CX] -= 4.0 * (x - cx) * drho
-                        acc[S_CY] -= 4.0 * dy * drho
-                        acc[S_TW2] += dz
-            for g in range(G):
-                slots[j, g] = acc[g]
+                        gcx -= 4.0 * (x - cx) * drho
+                        gcy -= 4.0 * dy * drho
+                        gtw2 += dz
+            slots[j, S_AX], slots[j, S_AX + 1], slots[j, S_AX + 2] = gax0, gax1, gax2
+            slots[j, S_AY], slots[j, S_AY + 1], slots[j, S_AY + 2] = gay0, gay1, gay2
+            slots[j, S_A0], slots[j, S_A0 + 1], slots[j, S_A0 + 2] = g00, g01, g02
+            slots[j, S_DET], slots[j, S_CX], slots[j, S_CY], slots[j, S_TW2] = gdet, gcx, gcy, gtw2
+            slots[j, S_OPACITY] = gop
+            slots[j, S_NORMAL], slots[j, S_NORMAL + 1], slots[j, S_NORMAL + 2] = gn_0, gn_1, gn_2
+            for c in range(C):
+                slots[j, S_FEATURE + c] = gfe[c]
 
 
 @njit(inline="always")
