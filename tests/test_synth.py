@@ -15,7 +15,7 @@ W, H = 160, 120
 
 @pytest.fixture(scope="module")
 def relief(tmp_path_factory, bundled_scan):
-    out = tmp_path_factory.mktemp("synth") / "relief"
+    out = tmp_path_factory.mktemp("synth") / "nested" / "relief"  # parent created on demand
     write_synth_scene("synth_relief", out, seed=3, width=W, height=H, cameras_dir=bundled_scan, log=None)
     return out
 

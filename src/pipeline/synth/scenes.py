@@ -240,7 +240,9 @@ def write_synth_scene(
     say(f"[synth] {name}: rendered {len(cams.ids)} views at {width}x{height} ({time.perf_counter() - t0:.1f} s)")
     observed_pts = np.unique(np.round(np.concatenate(observed) / 0.5), axis=0) * 0.5
 
-    gt_tmp = Path(tempfile.mkdtemp(prefix=".gt.", dir=Path(out_dir).resolve().parent))
+    parent = Path(out_dir).resolve().parent
+    parent.mkdir(parents=True, exist_ok=True)
+    gt_tmp = Path(tempfile.mkdtemp(prefix=".gt.", dir=parent))
     try:
         v_local, tris = scene.gt_mesh_local()
         write_ground_truth(gt_tmp, scene.scan_id, scene.to_world(v_local), tris, scene.ground_plane(),
