@@ -72,12 +72,17 @@ class MVSConfig:
     min_ncc: float = 0.5  # winner's mean NCC below this -> invalid
     min_std: float = 0.01  # reference window std (grey in [0, 1]) below this -> textureless, invalid
     sphere_margin: float = 1.0  # depth range: rays crossed with the unit sphere scaled by this
+    refine_iters: int = 1  # surface-following refinement passes (0: plain sweep)
+    refine_range: float = 2.0  # ... searching +- this many plane steps around the smoothed sweep
+    refine_step: float = 0.25  # ... in steps of this fraction of a plane step
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
             raise ValueError(f"init.mvs.window must be odd and >= 3, got {self.window}")
         if self.depth_step_px <= 0 or self.max_depths < 3:
             raise ValueError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
+        if self.refine_iters < 0 or not 0 < self.refine_step <= self.refine_range:
+            raise ValueError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
 
 
 @dataclass

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import cv2
 import numba
 import numpy as np
+from scipy import ndimage
 
 from pipeline import geometry
 from pipeline.config import InitConfig, MVSConfig
@@ -64,12 +65,14 @@ def box_mean(x: np.ndarray, k: int) -> np.ndarray:
 
 
 @numba.njit(parallel=True, cache=True)
-def _warp_moments(A, b, z, img, smask, R, x0, y0, mom, in_mask, seen) -> None:
-    """Warp a source onto the plane at reference depth ``z`` (mm).
+def _warp_moments(A, b, Z, img, smask, R, M, x0, y0, mom, in_mask, seen) -> None:
+    """Warp a source onto the reference at per-pixel depths ``Z`` (mm): a plane of the
+    sweep, or the smoothed surface of the refinement.
 
     Reference pixel ``(x0 + x, y0 + y)`` maps to source pixel ``q = A [x, y, 1] z + b``
-    (homogeneous). Writes ``mom[y, x] = (S, S*S, R*S)`` with ``S`` the bilinear source
-    sample (coordinates clamped to the image, so windows at the border stay defined),
+    (homogeneous). Writes ``mom[y, x] = M * (S, S*S, R*S)`` with ``S`` the bilinear source
+    sample (coordinates clamped to the image, so windows at the border stay defined) and
+    ``M`` the reference object mask (window moments count object pixels only),
     ``seen`` (in front and inside the image) and ``in_mask`` (source mask, nearest).
     """
     h, w = R.shape
@@ -78,6 +81,7 @@ def _warp_moments(A, b, z, img, smask, R, x0, y0, mom, in_mask, seen) -> None:
         py = y0 + y
         for x in range(w):
             px = x0 + x
+            z = Z[y, x]
             q0 = (A[0, 0] * px + A[0, 1] * py + A[0, 2]) * z + b[0]
             q1 = (A[1, 0] * px + A[1, 1] * py + A[1, 2]) * z + b[1]
             q2 = (A[2, 0] * px + A[2, 1] * py + A[2, 2]) * z + b[2]
@@ -97,24 +101,26 @@ def _warp_moments(A, b, z, img, smask, R, x0, y0, mom, in_mask, seen) -> None:
                      + fy * ((1 - fx) * img[i0 + 1, j0] + fx * img[i0 + 1, j0 + 1]))
                 in_mask[y, x] = smask[int(vc + 0.5), int(uc + 0.5)]
             seen[y, x] = ok
+            s *= M[y, x]
             mom[y, x, 0] = s
             mom[y, x, 1] = s * s
             mom[y, x, 2] = R[y, x] * s
 
 
 @numba.njit(parallel=True, cache=True)
-def _accumulate_ncc(moments, mu_r, var_r, in_mask, seen, acc, cnt) -> None:
-    """NCC from window moments (``E[S], E[S^2], E[RS]``), added to ``acc``/``cnt`` where
-    the source sees the point; -1 where it sees it outside its object mask."""
+def _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt) -> None:
+    """NCC from masked window moments (box means of ``M S, M S^2, M R S`` divided by the
+    window's object fraction ``frac``), added to ``acc``/``cnt`` where the source sees the
+    point; -1 where it sees it outside its object mask."""
     h, w = mu_r.shape
     for y in numba.prange(h):
         for x in range(w):
             if not seen[y, x]:
                 continue
-            if in_mask[y, x]:
-                mu_s = moments[y, x, 0]
-                var_s = max(moments[y, x, 1] - mu_s * mu_s, 0.0)
-                ncc = (moments[y, x, 2] - mu_r[y, x] * mu_s) / np.sqrt(var_r[y, x] * var_s + 1e-8)
+            if in_mask[y, x] and frac[y, x] > 0:
+                mu_s = moments[y, x, 0] / frac[y, x]
+                var_s = max(moments[y, x, 1] / frac[y, x] - mu_s * mu_s, 0.0)
+                ncc = (moments[y, x, 2] / frac[y, x] - mu_r[y, x] * mu_s) / np.sqrt(var_r[y, x] * var_s + 1e-8)
             else:
                 ncc = -1.0
             acc[y, x] += ncc
@@ -135,6 +141,31 @@ def _relative_warp(K_r, T_r, K_s, T_s):
     A = K_s @ T_rs[:3, :3] @ np.linalg.inv(K_r)
     b = K_s @ T_rs[:3, 3]
     return A, b
+
+
+def _peak(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Winner-take-all over axis 0 and the vertex of the parabola through the winner's
+    and its neighbours' scores. Returns ``(index, score, offset in steps, interior)``;
+    winners at either end or without a maximum are not ``interior``."""
+    n = len(cost)
+    best = cost.argmax(0)
+    best_score = np.take_along_axis(cost, best[None], 0)[0]
+    idx = np.clip(best, 1, n - 2)
+    c_m = np.take_along_axis(cost, (idx - 1)[None], 0)[0]
+    c_0 = np.take_along_axis(cost, idx[None], 0)[0]
+    c_p = np.take_along_axis(cost, (idx + 1)[None], 0)[0]
+    curv = c_m - 2 * c_0 + c_p
+    interior = (best > 0) & (best < n - 1) & (curv < 0)
+    offset = np.clip(np.where(interior, 0.5 * (c_m - c_p) / np.where(interior, curv, 1.0), 0.0), -0.5, 0.5)
+    return best, best_score, offset, interior
+
+
+def _smooth_inverse_depth(inv_depth: np.ndarray, ok: np.ndarray) -> np.ndarray:
+    """5x5 median of the inverse depth, with pixels not ``ok`` first filled from the
+    nearest ``ok`` pixel (so outliers and holes do not bend the surface)."""
+    idx = ndimage.distance_transform_edt(~ok, return_distances=False, return_indices=True)
+    filled = inv_depth[idx[0], idx[1]].astype(np.float32)
+    return cv2.medianBlur(filled, 5).astype(np.float64)
 
 
 def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | None = None) -> SweepResult:
@@ -175,8 +206,14 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
     inv_planes = np.linspace(1.0 / z_far, 1.0 / z_near, D)  # index 0 = far
 
     ref_img = np.ascontiguousarray(grey[ref, y0:y1, x0:x1], dtype=np.float32)
-    mu_r = box_mean(ref_img, k)
-    var_r = np.maximum(box_mean(ref_img * ref_img, k) - mu_r * mu_r, 0.0)
+    # Windows count object pixels only: background next to a silhouette is at another
+    # depth, and its contrast with the object would otherwise be matched as texture.
+    M = np.ascontiguousarray(mask[y0:y1, x0:x1], dtype=np.float32)
+    frac = box_mean(M, k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mu_r = np.where(frac > 0, box_mean(M * ref_img, k) / frac, 0.0).astype(np.float32)
+        var_r = np.where(frac > 0, np.maximum(box_mean(M * ref_img * ref_img, k) / frac - mu_r * mu_r, 0.0),
+                         0.0).astype(np.float32)
     near_b = np.nan_to_num(near, nan=np.inf).reshape(h, w)
     far_b = np.nan_to_num(far, nan=-np.inf).reshape(h, w)
     src_data = []
@@ -184,40 +221,47 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
         smask = scene.masks[s] if scene.masks is not None else np.ones((H, W), bool)
         src_data.append((A, b, np.ascontiguousarray(grey[s], dtype=np.float32), np.ascontiguousarray(smask, bool)))
 
-    cost = np.empty((D, h, w), dtype=np.float32)
     mom = np.empty((h, w, 3), np.float32)
     in_mask = np.zeros((h, w), bool)
     seen = np.zeros((h, w), bool)
-    for d in range(D):
-        z = 1.0 / inv_planes[d]
+
+    def score(Z: np.ndarray) -> np.ndarray:
+        """Mean NCC over the sources at per-pixel depths ``Z``; -1 where no source sees
+        the point or ``Z`` is outside the pixel's sphere interval (not the object)."""
         acc = np.zeros((h, w), np.float32)
         cnt = np.zeros((h, w), np.float32)
         for A, b, img, smask in src_data:
-            _warp_moments(A, b, z, img, smask, ref_img, x0, y0, mom, in_mask, seen)
+            _warp_moments(A, b, Z, img, smask, ref_img, M, x0, y0, mom, in_mask, seen)
             moments = cv2.boxFilter(mom, -1, (k, k), borderType=cv2.BORDER_REFLECT_101)
-            _accumulate_ncc(moments, mu_r, var_r, in_mask, seen, acc, cnt)
-        # Hypotheses outside the sphere interval of a pixel's own ray cannot be the object.
-        cost[d] = np.where((cnt > 0) & (z >= near_b) & (z <= far_b), acc / np.maximum(cnt, 1.0), -1.0)
+            _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt)
+        return np.where((cnt > 0) & (Z >= near_b) & (Z <= far_b), acc / np.maximum(cnt, 1.0), -1.0)
 
-    best = cost.argmax(0)
-    best_score = np.take_along_axis(cost, best[None], 0)[0]
-    idx = np.clip(best, 1, D - 2)
-    c_m = np.take_along_axis(cost, (idx - 1)[None], 0)[0]
-    c_0 = np.take_along_axis(cost, idx[None], 0)[0]
-    c_p = np.take_along_axis(cost, (idx + 1)[None], 0)[0]
-    curv = c_m - 2 * c_0 + c_p
-    interior = (best > 0) & (best < D - 1) & (curv < 0)
-    # Vertex of the parabola through the three scores, in plane units.
-    offset = np.clip(np.where(interior, 0.5 * (c_m - c_p) / np.where(interior, curv, 1.0), 0.0), -0.5, 0.5)
     step = (inv_planes[-1] - inv_planes[0]) / (D - 1)
-    depth = (1.0 / (inv_planes[best] + offset * step)).astype(np.float32)
+    cost = np.empty((D, h, w), dtype=np.float32)
+    Z = np.empty((h, w), np.float64)
+    for d in range(D):
+        Z.fill(1.0 / inv_planes[d])
+        cost[d] = score(Z)
+    best, best_score, offset, interior = _peak(cost)
+    inv_depth = inv_planes[best] + offset * step
+    obj = mask[y0:y1, x0:x1]
+    ok = obj & interior & (best_score >= params.min_ncc)
 
-    valid = (
-        mask[y0:y1, x0:x1]
-        & interior
-        & (best_score >= params.min_ncc)
-        & (np.sqrt(var_r) >= params.min_std)
-    )
+    # Refinement: windows that follow the smoothed surface of the sweep (offset by the
+    # same inverse depth everywhere), which removes most of the fronto-parallel bias on
+    # slanted surfaces; again winner-take-all and a parabola, now on a finer grid.
+    deltas = np.arange(-params.refine_range, params.refine_range + 1e-9, params.refine_step)
+    for _ in range(params.refine_iters):
+        if not ok.any():
+            break
+        surface = _smooth_inverse_depth(inv_depth, ok)
+        cost = np.stack([score(1.0 / (surface + dl * step)) for dl in deltas])
+        best, best_score, offset, interior = _peak(cost)
+        inv_depth = surface + (deltas[best] + offset * params.refine_step) * step
+        ok = obj & interior & (best_score >= params.min_ncc)
+    depth = (1.0 / inv_depth).astype(np.float32)
+
+    valid = ok & (np.sqrt(var_r) >= params.min_std)
     out.depth_mm[y0:y1, x0:x1] = np.where(valid, depth, 0.0)
     out.score[y0:y1, x0:x1] = np.where(valid, best_score, -1.0)
     out.valid[y0:y1, x0:x1] = valid
