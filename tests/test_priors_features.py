@@ -80,3 +80,15 @@ def test_gcf_minimum_at_true_depth(bundled_scan):
     assert min(curve[0], curve[-1]) > 1.5 * curve[i]  # a real basin, not a flat curve
     left, right = curve[: i + 1], curve[i:]
     assert np.all(np.diff(left) <= 1e-3) and np.all(np.diff(right) >= -1e-3)  # unimodal
+
+
+def test_gcf_minimum_on_a_synth_scene(bundled_scan):
+    """The same on `gcgs synth`'s synth_relief (one ray per pixel, no anti-aliasing) at
+    200x150, where a pixel spans ~1.9 mm: argmin within 2 mm."""
+    from pipeline.priors.gcf_check import synth_curve
+
+    deltas = np.arange(-10.0, 10.01, 1.0)
+    curve, _ = synth_curve("synth_relief", bundled_scan, 200, 150, deltas)
+    i = int(np.argmin(curve))
+    assert abs(deltas[i]) <= 2.0
+    assert min(curve[0], curve[-1]) > 1.15 * curve[i]

@@ -1,8 +1,8 @@
 """Does the GCF loss (Eq. 4-9) built on our features have its minimum at the true depth?
 
-Renders a textured relief plate into real cameras (scan24 views 23/24/33 by default),
-takes the reference view's ground-truth depth, offsets it by delta (mm, camera z), and
-evaluates L_gcf with the default features. ``python -m pipeline.priors.gcf_check`` writes
+Renders a textured relief plate (and optionally the ``gcgs synth`` scenes) into real
+cameras (scan24 views 23/24/33 by default), takes the reference view's ground-truth depth,
+offsets it by delta (mm, camera z), and evaluates L_gcf with the default features. ``python -m pipeline.priors.gcf_check`` writes
 the curve to ``reports/priors/gcf_vs_depth_offset.{json,png}``.
 """
 from __future__ import annotations
@@ -52,6 +52,22 @@ def relief_curve(camera_source: Path, width: int, height: int, deltas_mm: np.nda
     return curve, info
 
 
+def synth_curve(name: str, camera_source: Path, width: int, height: int, deltas_mm: np.ndarray,
+                views=(23, 24, 33), seed: int = 0) -> tuple[np.ndarray, dict]:
+    """The offset curve on a ``gcgs synth`` scene rendered into the given views (every
+    pixel where the scene's geometry, object or ground, is hit)."""
+    from pipeline.synth import Renderer, build_scene
+
+    scan = dtu.load_scene(camera_source, view_ids=list(views), resolution=(width, height), with_masks=False)
+    renderer = Renderer(build_scene(name, seed, dtu.load_cameras(camera_source)))
+    hits = [renderer.cast(K, T, width, height) for K, T in zip(scan.K, scan.world_to_cam)]
+    images = np.stack([renderer.shade(h) for h in hits]).astype(np.float32)
+    curve = offset_curve(images, scan.K, scan.world_to_cam, hits[0]["depth"], deltas_mm)
+    info = {"scene": f"{name} (pipeline.synth, seed {seed})", "cameras": f"{camera_source} views {list(views)}",
+            "width": width, "height": height, "reference_view": views[0]}
+    return curve, info
+
+
 def init_depth_curve(scene_dir: Path, init_dir: Path, deltas_mm: np.ndarray) -> tuple[np.ndarray, dict]:
     """The offset curve on a real scene, around the init stage's depth of its first view.
 
@@ -82,15 +98,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cameras", default="data/raw/dtu/scan24")
     p.add_argument("--width", type=int, default=800)
     p.add_argument("--height", type=int, default=600)
+    p.add_argument("--synth", nargs="*", default=[], help="also: these gcgs synth scenes")
     p.add_argument("--scene", default=None, help="also: a prepared real scene ...")
     p.add_argument("--init-dir", default=None, help="... and its init output (reference depth)")
     p.add_argument("--out", default="reports/priors")
     args = p.parse_args(argv)
     deltas = np.round(np.arange(-10.0, 10.0 + 1e-9, 0.5), 6)
     t0 = time.perf_counter()
-    curves = {"synthetic": summarise(deltas, *relief_curve(Path(args.cameras), args.width, args.height, deltas))}
+    cams = Path(args.cameras)
+    curves = {"relief plate": summarise(deltas, *relief_curve(cams, args.width, args.height, deltas))}
+    for name in args.synth:
+        curves[name] = summarise(deltas, *synth_curve(name, cams, args.width, args.height, deltas))
     if args.scene and args.init_dir:
-        curves["real"] = summarise(deltas, *init_depth_curve(Path(args.scene), Path(args.init_dir), deltas))
+        curves["scan24 real"] = summarise(deltas, *init_depth_curve(Path(args.scene), Path(args.init_dir), deltas))
     result = {"features": "default (5x5 normalised patches at dilations 1 and 2, 1/2 resolution)",
               "delta_mm": deltas.tolist(), "curves": curves, "seconds": round(time.perf_counter() - t0, 1)}
     out = Path(args.out)
@@ -102,11 +122,11 @@ def main(argv: list[str] | None = None) -> int:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 3.8), dpi=120)
-    labels = {"synthetic": "rendered relief plate, true depth", "real": "scan24 real images, init MVS depth"}
+    fig, ax = plt.subplots(figsize=(6.4, 4.0), dpi=120)
     for k, (name, c) in enumerate(curves.items()):
-        ax.plot(deltas, c["loss"], "-o", ms=2.5, color=f"C{k}",
-                label=f"{labels[name]} (argmin {c['argmin_delta_mm']:+.1f} mm)")
+        what = "real images, init MVS depth" if name == "scan24 real" else "rendered, true depth"
+        ax.plot(deltas, c["loss"], "-o", ms=2.0, color=f"C{k}",
+                label=f"{name}: {what} (argmin {c['argmin_delta_mm']:+.1f} mm)")
     ax.axvline(0.0, color="0.6", lw=0.8, ls="--")
     ax.set_xlabel("depth offset delta (mm, camera z of the reference view)")
     ax.set_ylabel("L_gcf (Eq. 4-9)")
