@@ -73,8 +73,9 @@ class FakeMASt3R(torch.nn.Module):
         return p1 * scale, c1, p2 * scale, c2
 
 
-class WrongOutputName(torch.nn.Module):
-    """MASt3R-like but names its first output ``pts3d`` (as the raw MASt3R head does)."""
+class PassThrough(torch.nn.Module):
+    """Tensors of the contract's shapes (the images as points); the names are given at
+    export, so the tests can export it with the right names or a wrong one."""
 
     def forward(self, img1: torch.Tensor, img2: torch.Tensor):
         pts = img1.permute(0, 2, 3, 1)

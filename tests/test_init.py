@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from init_scene import distance_to_spheres, make_scene
-from mast3r_helpers import FakeMASt3R, WrongOutputName, WrongRank, export, pair_scale
+from mast3r_helpers import FakeMASt3R, PassThrough, WrongRank, export, pair_scale
 from pipeline import geometry
 from pipeline.cli import main
 from pipeline.config import InitConfig
@@ -211,7 +211,7 @@ def test_mast3r_fit_with_shift():
 
 
 @pytest.mark.parametrize("module, outputs, message", [
-    (WrongOutputName(), ("pts3d", "conf_1", "pts3d_2", "conf_2"), "missing output 'pts3d_1'"),
+    (PassThrough(), ("pts3d", "conf_1", "pts3d_2", "conf_2"), "missing output 'pts3d_1'"),
     (WrongRank(), ("pts3d_1", "conf_1", "pts3d_2", "conf_2"), "output 'conf_1' has rank 4"),
 ])
 def test_mast3r_wrong_contract_is_named(small_scene, tmp_path, module, outputs, message):
@@ -278,3 +278,27 @@ def test_cli_replaces_previous_output(small_scene, tmp_path):
     (out / "stale.txt").write_text("old")
     assert main(["init", "--scene", str(scene_dir), "--backend", "sfm", "--out-dir", str(out)]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["init.json", "points.ply"]  # no depth for sfm
+
+
+def test_mast3r_input_size_fixed_or_512_long_side(tmp_path):
+    import warnings
+
+    import torch
+
+    from pipeline.onnx_models import load_onnx
+
+    x = torch.zeros(1, 3, 96, 128)
+    path = tmp_path / "dyn.onnx"
+    dyn = {n: {2: "H", 3: "W"} for n in ("img1", "img2")}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(PassThrough().eval(), (x, x), str(path), input_names=["img1", "img2"],
+                          output_names=["pts3d_1", "conf_1", "pts3d_2", "conf_2"], dynamic_axes=dyn,
+                          dynamo=False, opset_version=17)
+    dynamic = load_onnx(path, mast3r.MAST3R_CONTRACT)
+    assert mast3r.model_size(dynamic, 800, 600, 512) == (512, 384)
+    assert mast3r.model_size(dynamic, 600, 800, 512) == (384, 512)
+    assert mast3r.model_size(dynamic, 1000, 600, 512) == (512, 304)  # 307.2 -> nearest multiple of 16
+    fixed = export(PassThrough(), (128, 96), tmp_path / "fixed.onnx",
+                   outputs=("pts3d_1", "conf_1", "pts3d_2", "conf_2"))
+    assert mast3r.model_size(load_onnx(fixed, mast3r.MAST3R_CONTRACT), 800, 600, 512) == (128, 96)
