@@ -17,10 +17,8 @@ numbered 0..N-1 must have exactly N cameras.
 from __future__ import annotations
 
 import json
-import os
 import re
 import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,6 +26,7 @@ import cv2
 import numpy as np
 
 from pipeline import geometry
+from pipeline.atomic import atomic_dir
 from pipeline.data.scene import Scene, SceneError
 
 IMAGE_DIRS = ("image", "images")
@@ -261,9 +260,7 @@ def write_scene(
     relative path inside the scan to a file or folder to move in before the rename.
     """
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         (tmp / "image").mkdir()
         for v, img in images.items():
             _write_png(tmp / "image" / f"{v:06d}.png", img)
@@ -282,12 +279,6 @@ def write_scene(
             dst = tmp / rel
             dst.parent.mkdir(parents=True, exist_ok=True)
             shutil.move(str(src), str(dst))
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

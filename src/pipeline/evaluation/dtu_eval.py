@@ -25,8 +25,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
-import os
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,7 +34,7 @@ import cv2
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline import geometry
+from pipeline import atomic, geometry
 from pipeline.config import EvaluateConfig
 from pipeline.evaluation.gt import GroundTruth
 from pipeline.evaluation.sampling import check_mesh, radius_downsample, sample_mesh
@@ -279,14 +277,4 @@ def _json_ready(obj):
 
 def write_metrics(path: str | Path, metrics: dict) -> None:
     """Write metrics as JSON (NaN -> null) atomically (temp file in the same folder, renamed)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as fh:
-            json.dump(_json_ready(metrics), fh, indent=2, allow_nan=False)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic.write_text(path, json.dumps(_json_ready(metrics), indent=2, allow_nan=False) + "\n")

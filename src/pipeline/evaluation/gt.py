@@ -22,7 +22,13 @@ import numpy as np
 import scipy.io
 import scipy.ndimage
 
-from pipeline.evaluation.sampling import MeshError, check_mesh, radius_downsample, sample_mesh
+from pipeline import atomic
+from pipeline.evaluation.sampling import (
+    MeshError,
+    check_mesh,
+    radius_downsample,
+    sample_mesh,
+)
 
 # The official files are named "_10" after the 10 mm margin of their observation mask.
 # With one voxel of dilation the margin here is one voxel, so 10 mm voxels match it.
@@ -82,27 +88,14 @@ def _ply_bytes(vertices: np.ndarray, faces: np.ndarray | None) -> bytes:
     return ("\n".join(header + ["end_header"]) + "\n").encode("ascii") + b"".join(body)
 
 
-def _write_atomic(path: Path, data: bytes) -> None:
-    """Write ``data`` to a temp file next to ``path``, then rename over it."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_ply_points(path: str | Path, points_mm: np.ndarray) -> None:
     """Binary PLY of points (float32 x, y, z), written atomically."""
-    _write_atomic(Path(path), _ply_bytes(points_mm, None))
+    atomic.write_bytes(path, _ply_bytes(points_mm, None))
 
 
 def write_ply_mesh(path: str | Path, vertices_mm: np.ndarray, triangles: np.ndarray) -> None:
     """Binary PLY triangle mesh (float32 vertices, int32 faces), written atomically."""
-    _write_atomic(Path(path), _ply_bytes(vertices_mm, np.asarray(triangles, dtype=np.int64)))
+    atomic.write_bytes(path, _ply_bytes(vertices_mm, np.asarray(triangles, dtype=np.int64)))
 
 
 def read_points(path: str | Path) -> np.ndarray:

@@ -11,12 +11,12 @@
 """
 from __future__ import annotations
 
-import os
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from pipeline import atomic
 
 
 class InitFormatError(ValueError):
@@ -60,20 +60,6 @@ _PLY_DTYPE = np.dtype(
 _PLY_TYPES = {"<f4": "float", "|u1": "uchar"}
 
 
-def _atomic_write_bytes(path: Path, chunks: list[bytes]) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            for c in chunks:
-                fh.write(c)
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def write_ply(path: str | Path, cloud: PointCloud) -> Path:
     """Write ``cloud`` as binary PLY (atomically: temp file in the same dir, then rename)."""
     path = Path(path)
@@ -90,7 +76,7 @@ def write_ply(path: str | Path, cloud: PointCloud) -> Path:
         "comment gcgs init point cloud: world frame, millimetres\n"
         f"element vertex {len(cloud)}\n{props}end_header\n"
     )
-    _atomic_write_bytes(path, [header.encode("ascii"), rec.tobytes()])
+    atomic.write_bytes(path, header.encode("ascii") + rec.tobytes())
     return path
 
 
@@ -153,20 +139,12 @@ def write_depth(path: str | Path, d: DepthMap) -> Path:
     valid = np.asarray(d.valid, dtype=bool)
     depth = np.where(valid, d.depth_mm, 0.0).astype(np.float32)
     conf = np.where(valid, d.confidence, 0.0).astype(np.float32)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".npz", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic.atomic_file(path, suffix=".npz") as tmp:
         np.savez_compressed(
             tmp, depth_mm=depth, confidence=conf, valid=valid,
             K=np.asarray(d.K, np.float64), world_to_cam=np.asarray(d.world_to_cam, np.float64),
             view_id=np.int64(d.view_id),
         )
-        os.chmod(tmp, 0o644)  # mkstemp creates 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

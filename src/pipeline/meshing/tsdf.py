@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline import atomic
+
 
 @dataclass
 class Mesh:
@@ -119,8 +121,6 @@ def keep_largest_components(mesh: Mesh, num_clusters: int = 1, min_fraction: flo
 
 def write_mesh(path, mesh: Mesh) -> None:
     """Binary PLY via Open3D, atomically (temp file in the same folder, then rename)."""
-    import os
-    import tempfile
     from pathlib import Path
 
     import open3d as o3d
@@ -131,13 +131,6 @@ def write_mesh(path, mesh: Mesh) -> None:
                                   o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32)))
     if mesh.colors is not None:
         m.vertex_colors = o3d.utility.Vector3dVector(np.clip(mesh.colors, 0, 1))
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=".ply", dir=path.parent)
-    os.close(fd)
-    try:
-        if not o3d.io.write_triangle_mesh(tmp, m, write_ascii=False):
+    with atomic.atomic_file(path, suffix=".ply") as tmp:
+        if not o3d.io.write_triangle_mesh(str(tmp), m, write_ascii=False):
             raise OSError(f"{path}: Open3D could not write the mesh")
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise

@@ -30,7 +30,15 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.config import EvaluateConfig, InitConfig, SceneEntry, from_dict, load_params, section
+from pipeline import atomic
+from pipeline.config import (
+    EvaluateConfig,
+    InitConfig,
+    SceneEntry,
+    from_dict,
+    load_params,
+    section,
+)
 from pipeline.evaluation import gt as gt_io
 from pipeline.init.io import read_ply
 
@@ -212,9 +220,7 @@ def write_markdown(path: Path, report: dict) -> None:
                 i = r[key]["run"]
                 lines.append(f"| {name} | {label} | {i['wall_s']} | {i['cpu_s']} | {i['peak_rss_mb']} |")
     lines += ["", "## Notes", ""] + [f"- {n}" for n in report["notes"]] + [""]
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text("\n".join(lines))
-    os.replace(tmp, path)
+    atomic.write_text(path, "\n".join(lines))
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -251,9 +257,7 @@ def run(args: argparse.Namespace) -> int:
                                                 eval_cfg, args.params, log)
     out = Path(args.report)
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.json.tmp")
-    tmp.write_text(json.dumps(report, indent=2) + "\n")
-    os.replace(tmp, out.with_suffix(".json"))
+    atomic.write_text(out.with_suffix(".json"), json.dumps(report, indent=2) + "\n")
     write_markdown(out.with_suffix(".md"), report)
     log(f"[baseline] wrote {out.with_suffix('.json')} and {out.with_suffix('.md')}")
     return 0 if all(e.get("status") != "failed" for r in report["scenes"].values() for e in r["backends"].values()) else 1

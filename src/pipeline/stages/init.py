@@ -8,14 +8,12 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.atomic import atomic_dir
 from pipeline.config import InitConfig, load_params, section
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import Scene, SceneError
@@ -50,20 +48,11 @@ def check_scene(scene: Scene) -> None:
 def write_outputs(out_dir: str | Path, result: InitResult, info: dict) -> Path:
     """Write points.ply, depth maps and init.json atomically (temp dir, then rename)."""
     out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         write_ply(tmp / "points.ply", result.cloud)
         for d in result.depths or []:
             write_depth(depth_path(tmp, d.view_id), d)
         (tmp / "init.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
-        os.chmod(tmp, 0o755)  # mkdtemp creates 0700
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out_dir
 
 

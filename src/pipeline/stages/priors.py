@@ -10,22 +10,27 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import os
 import resource
-import shutil
-import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
+from pipeline.atomic import atomic_dir
 from pipeline.config import LossConfig, PriorsConfig, load_params, section
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import Scene, SceneError
 from pipeline.onnx_models import DSINE_CONTRACT, VISMVSNET_FEATURES_CONTRACT, load_onnx
 from pipeline.priors import features as feat
 from pipeline.priors import normals as nrm
-from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, write_features, write_normals
+from pipeline.priors.io import (
+    FeaturePrior,
+    NormalPrior,
+    features_path,
+    normals_path,
+    write_features,
+    write_normals,
+)
 
 
 def effective_backends(cfg: PriorsConfig, loss: LossConfig) -> tuple[str, str]:
@@ -83,9 +88,7 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
     timings = {"load_s": round(time.perf_counter() - t0, 3), "normals_s": 0.0, "features_s": 0.0}
     per_view = {}
 
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
+    with atomic_dir(out_dir) as tmp:
         for i, v in enumerate(scene.view_ids):
             where = f"{scene.source} view {v}"
             facts = {}
@@ -132,13 +135,6 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
             "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
         }
         (tmp / "priors.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
-        os.chmod(tmp, 0o755)  # mkdtemp creates 0700
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return info
 
 
