@@ -1,14 +1,16 @@
-"""Synthetic scenes: determinism, layout, camera consistency, ground truth, CLI."""
+"""Synthetic scenes: determinism, layout, camera handling, rendering, ground truth, CLI."""
 import json
 
 import numpy as np
+import open3d as o3d
 import pytest
+import scipy.ndimage
 
 from pipeline import geometry
 from pipeline.cli import main as gcgs
 from pipeline.data import dtu
 from pipeline.evaluation.gt import read_ground_truth, read_mesh
-from pipeline.synth import SCENES, Renderer, build_scene, raycast_depth, write_synth_scene
+from pipeline.synth import SCENES, Renderer, build_scene, raycast_depth, table_frame, write_synth_scene
 
 W, H = 160, 120
 
@@ -20,15 +22,27 @@ def relief(tmp_path_factory, bundled_scan):
     return out
 
 
+@pytest.fixture(scope="module")
+def cams(bundled_scan):
+    return dtu.load_cameras(bundled_scan)
+
+
+def scaled_K(cams, view, width, height):
+    return geometry.scale_intrinsics(cams.K[view], width / 800, height / 600)  # bundled cameras: 800x600
+
+
 def test_scene_reads_back_with_all_views(relief):
     scene = dtu.load_scene(relief, view_ids=None)
     assert scene.view_ids == list(range(49))
     assert scene.images.shape == (49, H, W, 3)
     assert scene.scan_id == SCENES["synth_relief"][0]
-    assert json.loads((relief / "scene.json").read_text())["seed"] == 3
-    # Every view sees the object, and the ground around it (not a blank image).
+    meta = json.loads((relief / "scene.json").read_text())
+    assert (meta["name"], meta["seed"], meta["source"]) == ("synth_relief", 3, "synthetic")
+    # Every view sees the whole object (no mask pixel on the border) and the table around it.
     cover = scene.masks.reshape(49, -1).mean(axis=1)
     assert np.all(cover > 0.03) and np.all(cover < 0.8)
+    border = scene.masks[:, [0, -1]].any() or scene.masks[:, :, [0, -1]].any()
+    assert not border
     assert np.all(scene.images[~scene.masks].std(axis=0) > 0.02)
 
 
@@ -37,11 +51,47 @@ def test_deterministic_from_seed(relief, tmp_path, bundled_scan):
                               cameras_dir=bundled_scan, log=None)
     other = write_synth_scene("synth_relief", tmp_path / "b", seed=4, width=W, height=H,
                               cameras_dir=bundled_scan, log=None)
-    for v in ("000023.png", "000040.png"):
-        assert (again / "image" / v).read_bytes() == (relief / "image" / v).read_bytes()
-        assert (other / "image" / v).read_bytes() != (relief / "image" / v).read_bytes()
+    for v in ("image/000023.png", "image/000040.png", "mask/023.png", "cameras_sphere.npz"):
+        assert (again / v).read_bytes() == (relief / v).read_bytes()
+    for v in ("image/000023.png", "image/000040.png"):
+        assert (other / v).read_bytes() != (relief / v).read_bytes()
     a, b = read_mesh(again / "gt" / "mesh.ply"), read_mesh(relief / "gt" / "mesh.ply")
     np.testing.assert_array_equal(a[0], b[0])
+    # .mat files carry a creation time in their header: compare their contents.
+    ga, gb = read_ground_truth(again / "gt"), read_ground_truth(relief / "gt")
+    np.testing.assert_array_equal(ga.obs_mask, gb.obs_mask)
+    np.testing.assert_array_equal(ga.points_mm, gb.points_mm)
+
+
+def test_table_frame_matches_the_dtu_camera_layout(cams):
+    """Up is level with the cameras (DTU keeps them unrolled) and the sparse input views
+    look down at the table at DTU's ~20-35 degrees, not from overhead."""
+    T = table_frame(cams)
+    np.testing.assert_allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+    up, ground = T[:3, 2], T[:3, 3]
+    for v in cams.ids:
+        assert abs(cams.world_to_cam[v][0, :3] @ up) < np.sin(np.radians(6))  # camera roll
+    centres = {v: geometry.camera_center(cams.world_to_cam[v]) for v in cams.ids}
+    assert all((c - ground) @ up > 100 for c in centres.values())  # every camera above the table
+    obj = ground + 70 * up  # mid-height of the objects
+    for v in (23, 24, 33):
+        d = centres[v] - obj
+        assert 15 < np.degrees(np.arcsin(d @ up / np.linalg.norm(d))) < 40
+
+
+def test_table_frame_rejects_unlevelled_cameras(cams):
+    rng = np.random.default_rng(0)
+    w2c = {}
+    for v in cams.ids:  # random orientations: no common horizontal plane
+        q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        T = np.eye(4)
+        T[:3, :3] = q * np.sign(np.linalg.det(q))
+        T[:3, 3] = [0, 0, 600]
+        w2c[v] = T
+    bad = dtu.DTUCameras(K=cams.K, world_to_cam=w2c, norm_to_world=cams.norm_to_world, path=cams.path)
+    with pytest.raises(ValueError, match="cameras_sphere.npz: the cameras' x axes"):
+        table_frame(bad)
 
 
 def test_depth_reprojects_consistently_between_views(relief):
@@ -57,42 +107,102 @@ def test_depth_reprojects_consistently_between_views(relief):
     other = d24[ij[ok, 1], ij[ok, 0]]
     visible = np.abs(other - z[ok]) < 2.0  # mm; occluded points differ by far more
     assert visible.mean() > 0.7
-    # Sub-pixel rounding moves the lookup by <= 0.5 px (~1 mm at this size on the slanted sphere).
+    # Rounding moves the lookup by <= 0.5 px (~1 mm at this size on the slanted sphere).
     assert np.median(np.abs(other - z[ok])[visible]) < 0.5
 
 
-def test_masks_are_object_hits_and_images_shaded(relief, bundled_scan):
-    cams = dtu.load_cameras(relief)
-    syn = build_scene("synth_relief", 3, dtu.load_cameras(bundled_scan))
-    hits = Renderer(syn).cast(cams.K[23], cams.world_to_cam[23], W, H)
+def test_masks_are_object_hits_and_depths_match_the_mesh(relief, bundled_scan, cams):
+    syn = build_scene("synth_relief", 3, cams)
+    renderer = Renderer(syn)
+    hits = renderer.cast(scaled_K(cams, 23, W, H), cams.world_to_cam[23], W, H)
     mask = dtu.load_masks(relief, [23])[23]
-    np.testing.assert_array_equal(mask, Renderer(syn).object_mask(hits))
+    np.testing.assert_array_equal(mask, renderer.object_mask(hits))
+    # The renderer's depth (local frame) equals raycast_depth of the world-frame GT mesh.
+    V, F = read_mesh(relief / "gt" / "mesh.ply")
+    d = raycast_depth(V, F, scaled_K(cams, 23, W, H), cams.world_to_cam[23], W, H)
+    np.testing.assert_allclose(d[mask], hits["depth"][mask], atol=1e-3)
     # Object depth is in DTU range (the cameras are ~640-690 mm from the sphere centre).
     assert 450 < np.nanmin(hits["depth"][mask]) < np.nanmax(hits["depth"][mask]) < 800
 
 
-def test_ground_truth_files_are_consistent(relief):
+def test_views_are_photo_consistent(cams):
+    """Solid texture + light fixed in the world: a surface point has the same colour in
+    every view, so warping view 24 into view 23 through the true depth matches, and
+    through a depth 3 mm off does not."""
+    w, h = 400, 300
+    renderer = Renderer(build_scene("synth_relief", 0, cams))
+    K = {v: scaled_K(cams, v, w, h) for v in (23, 24)}
+    hits = {v: renderer.cast(K[v], cams.world_to_cam[v], w, h) for v in (23, 24)}
+    img = {v: renderer.shade(hits[v]) for v in (23, 24)}
+    mask = renderer.object_mask(hits[23])
+
+    def median_error(offset_mm):
+        depth = np.nan_to_num(hits[23]["depth"]) + offset_mm
+        pts = geometry.backproject_depth(K[23], cams.world_to_cam[23], depth)[mask]
+        px, z = geometry.project(K[24], cams.world_to_cam[24], pts)
+        ij = np.rint(px).astype(int)
+        ok = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+        ok[ok] = np.abs(hits[24]["depth"][ij[ok, 1], ij[ok, 0]] - z[ok]) < 4.0  # visible in view 24
+        warped = np.stack([scipy.ndimage.map_coordinates(img[24][..., c], [px[ok, 1], px[ok, 0]], order=1)
+                           for c in range(3)], axis=1)
+        return np.median(np.abs(warped - img[23][mask][ok]).max(axis=1))
+
+    exact, off = median_error(0.0), median_error(3.0)
+    assert exact < 0.03
+    assert off > 2 * exact
+
+
+def test_silhouettes_are_antialiased(cams):
+    """shade() is closer to a 4x4 box-filtered render than one sample per pixel is."""
+    renderer = Renderer(build_scene("synth_thin", 0, cams))
+    K = scaled_K(cams, 23, W, H)
+    hits = renderer.cast(K, cams.world_to_cam[23], W, H)
+    img = renderer.shade(hits)
+    centre = renderer._shade_samples(hits["_rays"], hits["_trace"]).reshape(H, W, 3)
+    fine = renderer.shade(renderer.cast(geometry.scale_intrinsics(K, 4, 4), cams.world_to_cam[23], 4 * W, 4 * H))
+    ref = fine.reshape(H, 4, W, 4, 3).mean(axis=(1, 3))
+    assert np.abs(img - ref).mean() < 0.6 * np.abs(centre - ref).mean()
+
+
+def test_ground_truth_files_are_consistent(relief, cams):
     gt = read_ground_truth(relief / "gt")
     V, F = read_mesh(relief / "gt" / "mesh.ply")
     assert gt.scan_id == SCENES["synth_relief"][0]
     # GT points lie on the GT mesh.
-    import open3d as o3d
-
     rc = o3d.t.geometry.RaycastingScene()
     rc.add_triangles(V.astype(np.float32), F.astype(np.uint32))
     sample = gt.points_mm[:: max(1, len(gt.points_mm) // 20000)]
     dist = rc.compute_distance(o3d.core.Tensor(sample.astype(np.float32))).numpy()
     assert dist.max() < 0.01
-    # The evaluation plane separates the object (above) from the ground (below).
+    # The evaluation plane separates the object (above) from the table disk (below).
+    syn = build_scene("synth_relief", 3, cams)
+    local_z = syn.to_local(gt.points_mm)[:, 2]
     above = gt.above_plane(gt.points_mm)
+    clear = np.abs(local_z - 1.0) > 1e-6  # the plane is 1 mm above the table
+    np.testing.assert_array_equal(above[clear], local_z[clear] > 1.0)
     assert 0.2 < above.mean() < 0.95
-    assert gt.obs_mask.any() and gt.res_mm > 0
+    # The ObsMask holds every surface point a camera sees, not the inside of the sphere.
+    scene = dtu.load_scene(relief, view_ids=[23, 40])
+    for k in range(2):
+        d = raycast_depth(V, F, scene.K[k], scene.world_to_cam[k], W, H)
+        seen = geometry.backproject_depth(scene.K[k], scene.world_to_cam[k], np.nan_to_num(d))[np.isfinite(d)]
+        idx = gt.voxel_index(seen)
+        assert gt.obs_mask[idx[:, 0], idx[:, 1], idx[:, 2]].all()
+    centre = gt.voxel_index(syn.to_world(np.array([[0.0, 0.0, 70.0]])))[0]  # 85 mm below the surface
+    assert np.all(centre >= 0) and np.all(centre < gt.obs_mask.shape)
+    assert not gt.obs_mask[tuple(centre)]
 
 
-def test_cli_list_and_bad_name(capsys, tmp_path):
+def test_cli_list_and_bad_arguments(capsys, tmp_path, bundled_scan):
     assert gcgs(["synth", "--list"]) == 0
     listed = capsys.readouterr().out
     assert all(name in listed for name in SCENES)
     assert gcgs(["synth", "nope", "--out", str(tmp_path / "x")]) == 1
     assert "unknown synthetic scene 'nope'" in capsys.readouterr().err
+    assert gcgs(["synth", "synth_thin", "--out", str(tmp_path / "x"), "--width", "0"]) == 1
+    assert "image size must be positive" in capsys.readouterr().err
+    assert gcgs(["synth", "synth_thin", "--out", str(tmp_path / "x"), "--cameras", str(tmp_path / "none")]) == 1
+    assert str(tmp_path / "none") in capsys.readouterr().err
+    assert gcgs(["synth", "synth_thin"]) == 1
+    assert "--out" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()

@@ -86,7 +86,9 @@ def relief_sphere(seed: int) -> list[Part]:
 
 
 def thin_structures(seed: int) -> list[Part]:
-    """A sharp-edged box carrying thin fins, and thin rods beside it."""
+    """A sharp-edged box carrying thin fins, and thin rods beside it, turned 35 degrees
+    about the vertical so the cameras (around local +x) see box corners and the fins
+    obliquely rather than face-on."""
     rng = np.random.default_rng(seed)
     parts = [Part(*box((130.0, 100.0, 55.0), (-65.0, -50.0, 0.0)), "noise", False)]
     for k, x in enumerate((-40.0, 0.0, 40.0)):
@@ -96,4 +98,6 @@ def thin_structures(seed: int) -> list[Part]:
     for (x, y) in ((90.0, 30.0), (90.0, -35.0), (-90.0, 0.0)):
         parts.append(Part(*cylinder(radius=2.0 + rng.uniform(0, 1.0), height=rng.uniform(90, 130), base_xy=(x, y)),
                           "noise", True))
-    return parts
+    c, s = np.cos(np.radians(35.0)), np.sin(np.radians(35.0))
+    yaw = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return [Part(p.vertices @ yaw.T, p.triangles, p.texture, p.smooth) for p in parts]

@@ -1,9 +1,21 @@
-"""Solid (3D) procedural textures: albedo as a function of the surface point, so every
-view sees the same colour at the same point. Deterministic from the seed."""
+"""Solid (3D) procedural textures: albedo as a function of the surface point (local frame,
+mm), so every view sees the same colour at the same point. Deterministic from the seed.
+
+Scalar numba functions, called per ray sample by the shading kernel of
+:mod:`pipeline.synth.render`. The patterns are band-limited (smooth noise, soft-edged
+specks and checkers, edges ~1 mm wide) so one sample per pixel does not alias at DTU
+resolutions.
+"""
 from __future__ import annotations
 
 import numba
 import numpy as np
+
+# Texture kinds (ids used by the kernel).
+PLAIN, NOISE, GROUND = 0, 1, 2
+KINDS = {"plain": PLAIN, "noise": NOISE, "ground": GROUND}
+PLAIN_RGB = (0.72, 0.62, 0.52)
+
 
 @numba.njit(cache=True, inline="always")
 def _hash(ix: int, iy: int, iz: int, seed: int) -> float:
@@ -18,66 +30,62 @@ def _hash(ix: int, iy: int, iz: int, seed: int) -> float:
     return float(h >> np.uint64(11)) / 9007199254740992.0
 
 
-@numba.njit(cache=True, parallel=True)
-def _value_noise(points: np.ndarray, cell_mm: float, seed: int) -> np.ndarray:
-    out = np.empty(points.shape[0])
-    for n in numba.prange(points.shape[0]):
-        q0, q1, q2 = points[n, 0] / cell_mm, points[n, 1] / cell_mm, points[n, 2] / cell_mm
-        i0, i1, i2 = np.floor(q0), np.floor(q1), np.floor(q2)
-        f0, f1, f2 = q0 - i0, q1 - i1, q2 - i2
-        u0, u1, u2 = f0 * f0 * (3 - 2 * f0), f1 * f1 * (3 - 2 * f1), f2 * f2 * (3 - 2 * f2)
-        acc = 0.0
-        for dx in range(2):
-            wx = u0 if dx else 1 - u0
-            for dy in range(2):
-                wy = u1 if dy else 1 - u1
-                for dz in range(2):
-                    wz = u2 if dz else 1 - u2
-                    acc += wx * wy * wz * _hash(int(i0) + dx, int(i1) + dy, int(i2) + dz, seed)
-        out[n] = acc
-    return out
+@numba.njit(cache=True)
+def value_noise(x: float, y: float, z: float, cell_mm: float, seed: int) -> float:
+    """Smooth (C1) value noise in [0, 1] with lattice spacing ``cell_mm``."""
+    q0, q1, q2 = x / cell_mm, y / cell_mm, z / cell_mm
+    i0, i1, i2 = np.floor(q0), np.floor(q1), np.floor(q2)
+    f0, f1, f2 = q0 - i0, q1 - i1, q2 - i2
+    u0, u1, u2 = f0 * f0 * (3 - 2 * f0), f1 * f1 * (3 - 2 * f1), f2 * f2 * (3 - 2 * f2)
+    acc = 0.0
+    for dx in range(2):
+        wx = u0 if dx else 1 - u0
+        for dy in range(2):
+            wy = u1 if dy else 1 - u1
+            for dz in range(2):
+                wz = u2 if dz else 1 - u2
+                acc += wx * wy * wz * _hash(int(i0) + dx, int(i1) + dy, int(i2) + dz, seed)
+    return acc
 
 
-def value_noise(points: np.ndarray, cell_mm: float, seed: int) -> np.ndarray:
-    """Smooth value noise in [0, 1] with lattice spacing ``cell_mm`` (points in mm)."""
-    return _value_noise(np.ascontiguousarray(points, dtype=np.float64), float(cell_mm), int(seed))
-
-
-def fbm(points: np.ndarray, cell_mm: float, seed: int, octaves: int = 3) -> np.ndarray:
-    total, amp, norm = np.zeros(len(points)), 1.0, 0.0
+@numba.njit(cache=True)
+def fbm(x: float, y: float, z: float, cell_mm: float, seed: int, octaves: int) -> float:
+    """Octaves of value noise, halving cell and amplitude each time; in [0, 1]."""
+    total, amp, norm = 0.0, 1.0, 0.0
     for o in range(octaves):
-        total += amp * value_noise(points, cell_mm / 2**o, seed + 101 * o)
+        total += amp * value_noise(x, y, z, cell_mm / 2**o, seed + 101 * o)
         norm += amp
         amp *= 0.5
     return total / norm
 
 
+@numba.njit(cache=True, inline="always")
+def _ramp(v: float, lo: float, hi: float) -> float:
+    return min(1.0, max(0.0, (v - lo) / (hi - lo)))
+
+
+@numba.njit(cache=True)
+def albedo(kind: int, x: float, y: float, z: float, seed: int, palette: np.ndarray) -> tuple[float, float, float]:
+    """RGB albedo in [0, 1] of the point ``(x, y, z)`` (local mm).
+
+    ``palette`` (3, 3) holds the colours of the ``NOISE`` kind (see :func:`palette`).
+    """
+    if kind == PLAIN:
+        return PLAIN_RGB
+    if kind == NOISE:
+        # Two-colour fbm blotches (6 mm) with soft specks of a third colour (2 mm cells).
+        mix = _ramp(fbm(x, y, z, 6.0, seed, 3), 0.1875, 0.8125)
+        speck = 0.4 * _ramp(value_noise(x, y, z, 2.0, seed + 1), 0.66, 0.74)
+        r = (1 - speck) * (mix * palette[0, 0] + (1 - mix) * palette[1, 0]) + speck * palette[2, 0]
+        g = (1 - speck) * (mix * palette[0, 1] + (1 - mix) * palette[1, 1]) + speck * palette[2, 1]
+        b = (1 - speck) * (mix * palette[0, 2] + (1 - mix) * palette[1, 2]) + speck * palette[2, 2]
+        return r, g, b
+    # The table: a grey 20 mm checker with ~1 mm soft edges, plus fine noise.
+    s = np.sin(np.pi * x / 20.0) * np.sin(np.pi * y / 20.0)
+    grey = 0.35 + 0.15 * _ramp(6.0 * s, -1.0, 1.0) + 0.2 * (fbm(x, y, z, 4.0, seed + 3, 2) - 0.5)
+    return grey, 0.97 * grey, 0.93 * grey
+
+
 def palette(seed: int) -> np.ndarray:
-    """Three RGB colours, deterministic from the seed."""
-    rng = np.random.default_rng(seed + 7)
-    return rng.uniform(0.15, 0.9, size=(3, 3))
-
-
-def albedo(kind: str, points_local: np.ndarray, seed: int) -> np.ndarray:
-    """RGB albedo in [0, 1] of points (local object frame, mm) for a texture ``kind``."""
-    n = len(points_local)
-    if n == 0:
-        return np.zeros((0, 3))
-    if kind == "plain":
-        return np.tile([0.72, 0.62, 0.52], (n, 1))
-    if kind == "noise":
-        cols = palette(seed)
-        a = fbm(points_local, 6.0, seed)
-        b = value_noise(points_local, 2.0, seed + 1)
-        mix = np.clip(1.6 * (a - 0.5) + 0.5, 0, 1)[:, None]
-        base = mix * cols[0] + (1 - mix) * cols[1]
-        speck = (b > 0.7)[:, None]
-        return np.where(speck, 0.6 * base + 0.4 * cols[2], base)
-    if kind == "ground":
-        # DTU's table: grey with printed pattern. Checker of 20 mm plus fine noise.
-        cx = np.floor(points_local[:, 0] / 20.0).astype(np.int64)
-        cy = np.floor(points_local[:, 1] / 20.0).astype(np.int64)
-        check = ((cx + cy) & 1).astype(np.float64)
-        g = 0.35 + 0.15 * check + 0.2 * (fbm(points_local, 4.0, seed + 3, octaves=2) - 0.5)
-        return np.stack([g, g * 0.97, g * 0.93], axis=1)
-    raise ValueError(f"unknown texture {kind!r}")
+    """Three RGB colours (3, 3), deterministic from the seed."""
+    return np.random.default_rng(seed + 7).uniform(0.15, 0.9, size=(3, 3))
