@@ -17,15 +17,19 @@ are emitted in centre-depth order and a counting sort by tile keeps that order).
 thread renders a tile surfel by surfel, touching only the pixels of the surfel's box
 inside the tile, with the per-pixel state in small local arrays.
 
-The backward recomputes each pair with the *same* helper and arithmetic as the forward
-(no fastmath), so it replays exactly the forward's skips and stop; it walks each pixel
-back to front from its last contributor and writes what a (tile, surfel) pair receives
-from all pixels of its tile into that pair's own slot. The per-surfel sum runs over
-slots in a fixed order. No atomics, no per-thread buffers: results are bitwise
-identical whatever the number of threads or the scheduling.
+The forward writes one record per composited pair (pixel, transmittance before it,
+alpha, depth, intersection), grouped by list entry; the backward replays exactly those
+pairs - the forward's skips, stop and median choice by construction - visiting the
+entries in reverse, so each pixel sees its pairs back to front, and writes what a
+(tile, surfel) pair receives from all pixels of its tile into that pair's own slot.
+The per-surfel sum runs over slots in a fixed order. No atomics, no per-thread
+buffers: results are bitwise identical whatever the number of threads or the
+scheduling. Memory kept for the backward grows with the pairs (records: the boxes'
+pixel count x 7 values, an upper bound; slots: the (tile, surfel) pairs x (17 + C)).
 
-Arithmetic is float64 inside; inputs may be float32 or float64 and outputs/gradients
-take the input dtype. The per-pixel state kept for the backward is float64.
+Arithmetic is float64 inside; inputs may be float32 or float64 and outputs, gradients
+and pair records take the input dtype. The per-pixel state kept for the backward is
+float64.
 """
 from __future__ import annotations
 
@@ -64,6 +68,16 @@ S_OPACITY = 13
 S_NORMAL = 14  # 3
 S_FEATURE = 17  # C
 S_FIXED = 17
+
+# One record per composited (pixel, surfel) pair, written by the forward for the backward.
+R_FLAGS = 0  # local pixel index + 256 * use3 + 512 * capped (exact in float32)
+R_T = 1  # transmittance before the pair
+R_A = 2  # alpha
+R_Z = 3  # depth
+R_U = 4  # intersection (u, v) and 1 / q2 (use3 pairs only)
+R_V = 5
+R_INV = 6
+R_SIZE = 7
 
 _RHO_SLACK = 1e-6
 
@@ -174,7 +188,8 @@ def bin_tiles(order, box, n_tx, n_ty):
     ``order``: visible surfel ids front to back. Returns ``tile_start (n_tiles + 1)``,
     ``tile_list (n_pairs)`` surfel ids, ``emit_start (P + 1)`` and ``slot_of_emit``:
     surfel ``s``'s pairs, in its own row-major tile order, sit at list positions
-    ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``.
+    ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``; and ``rec_tile_start``, each tile's
+    region in the pair-record buffer (its boxes' pixel count: an upper bound).
     """
     P = box.shape[0]
     per_surfel = np.zeros(P + 1, np.int64)
@@ -191,16 +206,19 @@ def bin_tiles(order, box, n_tx, n_ty):
     fill = tile_start[:-1].copy()
     tile_list = np.empty(tile_start[-1], np.int32)
     slot_of_emit = np.empty(tile_start[-1], np.int64)
+    capacity = np.zeros(n_tx * n_ty + 1, np.int64)
     for s in order:
         e = emit_start[s]
         for ty in range(box[s, 2] // TILE, box[s, 3] // TILE + 1):
+            rows = min(box[s, 3], ty * TILE + TILE - 1) - max(box[s, 2], ty * TILE) + 1
             for tx in range(box[s, 0] // TILE, box[s, 1] // TILE + 1):
                 t = ty * n_tx + tx
                 tile_list[fill[t]] = s
                 slot_of_emit[e] = fill[t]
                 fill[t] += 1
                 e += 1
-    return tile_start, tile_list, emit_start, slot_of_emit
+                capacity[t + 1] += rows * (min(box[s, 1], tx * TILE + TILE - 1) - max(box[s, 0], tx * TILE) + 1)
+    return tile_start, tile_list, emit_start, slot_of_emit, np.cumsum(capacity)
 
 
 @njit(inline="always")
@@ -284,15 +302,16 @@ def _pair(x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, i
 def forward(
     tile_start, tile_list, tile_order, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
     out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld, out_dist,
-    aux_T, aux_D, aux_W, aux_M1, aux_M2, n_contrib, med_local,
+    aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec_tile_start, rec, rec_start, rec_count,
 ):  # fmt: skip
     """Composite every tile front to back.
 
     Besides the seven maps it keeps, per pixel, the final transmittance ``aux_T``,
     ``D = sum w z``, the moment sums ``W = sum w``, ``M1 = sum w m``, ``M2 = sum w m^2``
-    (float64), the number of list entries up to the last contributor (``n_contrib``)
-    and the list position of the median-depth surfel (``med_local``, -1 if none),
-    both local to the tile.
+    (float64) and the tile-local list position of the median-depth surfel
+    (``med_local``, -1 if none); and one record (``R_*``) per composited pair, those of
+    list entry ``j`` at ``rec[rec_start[j] : rec_start[j] + rec_count[j]]``. The backward
+    replays exactly these pairs.
     """
     height = out_alpha.shape[0]
     C = feat.shape[1]
@@ -315,14 +334,18 @@ def forward(
         F = np.zeros((npx, C))
         N = np.zeros((npx, 3))
         medi = np.full(npx, -1, np.int32)
-        last = np.zeros(npx, np.int32)
         done = np.zeros(npx, np.bool_)
         fs = np.empty(C)
         n_done = 0
         start = tile_start[t]
+        r = rec_tile_start[t]
+        for j in range(start, tile_start[t + 1]):
+            rec_start[j] = r
+            rec_count[j] = 0
         for j in range(start, tile_start[t + 1]):
             if n_done == npx:
                 break
+            rec_start[j] = r
             s = tile_list[j]
             ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
             ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
@@ -372,8 +395,17 @@ def forward(
                     if T > 0.5:
                         med[p] = z
                         medi[p] = j - start
-                    last[p] = j - start + 1
                     Tr[p] = T_next
+                    flags = (px - x0) + (py - y0) * tw + (256 if use3 else 0) + (512 if a_raw >= ALPHA_MAX else 0)
+                    rec[r, R_FLAGS] = flags
+                    rec[r, R_T] = T
+                    rec[r, R_A] = a
+                    rec[r, R_Z] = z
+                    rec[r, R_U] = u
+                    rec[r, R_V] = v
+                    rec[r, R_INV] = inv
+                    r += 1
+            rec_count[j] = r - rec_start[j]
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tw + px - x0
@@ -394,24 +426,24 @@ def forward(
                 aux_W[py, px] = Ws[p]
                 aux_M1[py, px] = M1[p]
                 aux_M2[py, px] = M2[p]
-                n_contrib[py, px] = last[p]
                 med_local[py, px] = medi[p]
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def backward(
-    tile_start, tile_list, tile_order, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
-    aux_T, aux_D, aux_W, aux_M1, aux_M2, n_contrib, med_local,
+    tile_start, tile_list, tile_order, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec, rec_start, rec_count,
     g_feat, g_alpha, g_depth, g_med, g_ncam, g_nworld, g_dist, slots,
 ):  # fmt: skip
-    """Pair gradients into ``slots`` (n_pairs, 17 + C).
+    """Pair gradients into ``slots`` (n_pairs, 17 + C), from the forward's records.
 
-    Per pixel, walking back to front with ``T_i = T_{i+1} / (1 - a_i)``:
+    Per pixel, back to front over its composited pairs:
     ``dL/da_i = T_i v_i - S_i / (1 - a_i)``, ``S_i = sum_{k>i} w_k v_k``,
     ``v_i = gA + gF.f_i + gD z_i + gN.n_i + gDist dDist/dw_i`` and
     ``dDist/dw_i = m_i^2 W - 2 m_i M1 + M2`` (totals), since ``Dist = W M2 - M1^2``.
     The expected depth ``D / (A + eps)`` and the world normal ``R_wc^T N`` are folded
-    into ``gD``, ``gA`` and ``gN`` first.
+    into ``gD``, ``gA`` and ``gN`` first. Entries are visited in reverse list order;
+    within an entry each pixel appears once, so every pixel sees its pairs back to front.
     """
     height = aux_T.shape[0]
     C = feat.shape[1]
@@ -425,113 +457,94 @@ def backward(
         y1 = min(y0 + TILE, height)
         tw = x1 - x0
         npx = tw * (y1 - y0)
-        Tr = np.empty(npx)
         S = np.zeros(npx)
         gA = np.empty(npx)
         gD = np.empty(npx)
         gN = np.empty((npx, 3))
-        max_last = 0
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tw + px - x0
-                Tr[p] = aux_T[py, px]
-                max_last = max(max_last, n_contrib[py, px])
                 inv = 1.0 / (1.0 - aux_T[py, px] + depth_eps)
                 ge = float(g_depth[py, px])
                 gD[p] = ge * inv
                 gA[p] = float(g_alpha[py, px]) - ge * aux_D[py, px] * inv * inv
-                for r in range(3):
-                    gN[p, r] = float(g_ncam[py, px, r]) + (
-                        Rwc[r, 0] * g_nworld[py, px, 0] + Rwc[r, 1] * g_nworld[py, px, 1] + Rwc[r, 2] * g_nworld[py, px, 2]
+                for k in range(3):
+                    gN[p, k] = float(g_ncam[py, px, k]) + (
+                        Rwc[k, 0] * g_nworld[py, px, 0] + Rwc[k, 1] * g_nworld[py, px, 1] + Rwc[k, 2] * g_nworld[py, px, 2]
                     )
         start = tile_start[t]
-        for j in range(start + max_last, tile_start[t + 1]):
-            slots[j, :] = 0.0
         gfe = np.empty(C)
         fs = np.empty(C)
-        for j in range(start + max_last - 1, start - 1, -1):
+        for j in range(tile_start[t + 1] - 1, start - 1, -1):
             li = j - start
             s = tile_list[j]
             # Scalar accumulators stay in registers (see S_* for their meaning).
             gax0 = gax1 = gax2 = gay0 = gay1 = gay2 = g00 = g01 = g02 = 0.0
             gdet = gcx = gcy = gtw2 = gop = gn_0 = gn_1 = gn_2 = 0.0
             gfe[:] = 0.0
-            ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
-            ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
-            a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
-            det, cx, cy = geo[s, GEO_DET], geo[s, GEO_CX], geo[s, GEO_CY]
-            rho_max, o = geo[s, GEO_RHO_MAX], geo[s, GEO_OPACITY]
-            inv_det, inv_zc = geo[s, GEO_INV_DET], geo[s, GEO_INV_ZC]
-            zc = float(Tm[s, 8])
+            cx, cy, o = geo[s, GEO_CX], geo[s, GEO_CY], geo[s, GEO_OPACITY]
             for c in range(C):
                 fs[c] = feat[s, c]
             n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
-            for py in range(max(box[s, 2], y0), min(box[s, 3], y1 - 1) + 1):
+            for r in range(rec_start[j], rec_start[j] + rec_count[j]):
+                flags = int(rec[r, R_FLAGS])
+                p = flags & 255
+                dpy = p // tw
+                px = x0 + p - dpy * tw
+                py = y0 + dpy
+                x = float(px)
                 y = float(py)
-                dy = y - cy
-                dy2 = dy * dy
-                qr0 = y * ay0 + a00
-                qr1 = y * ay1 + a01
-                qr2 = y * ay2 + a02
-                row = (py - y0) * tw - x0
-                xa, xb = _row_span(max(box[s, 0], x0), min(box[s, 1], x1 - 1), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max)
-                for px in range(xa, xb + 1):
-                    if li >= n_contrib[py, px]:
-                        continue
-                    x = float(px)
-                    ok, a, a_raw, Gv, z, iz, use3, u, v, inv = _pair(
-                        x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o
-                    )
-                    if not ok:
-                        continue
-                    p = row + px
-                    r = 1.0 / (1.0 - a)
-                    T = Tr[p] * r
-                    Tr[p] = T
-                    w = a * T
-                    m = mscale * (1.0 - near * iz)
-                    Wt = aux_W[py, px]
-                    M1t = aux_M1[py, px]
-                    gd = float(g_dist[py, px])
-                    gq0, gq1, gq2 = gN[p, 0], gN[p, 1], gN[p, 2]
-                    vsum = gA[p] + gD[p] * z + gq0 * n0 + gq1 * n1 + gq2 * n2
-                    vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
-                    for c in range(C):
-                        gf = float(g_feat[py, px, c])
-                        vsum += gf * fs[c]
-                        gfe[c] += gf * w
-                    gn_0 += gq0 * w
-                    gn_1 += gq1 * w
-                    gn_2 += gq2 * w
-                    dL_da = T * vsum - S[p] * r
-                    S[p] += w * vsum
-                    dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
-                    if med_local[py, px] == li:
-                        dz += float(g_med[py, px])
-                    drho = 0.0
-                    if a_raw < ALPHA_MAX:  # the cap has zero derivative
-                        gop += dL_da * Gv
-                        drho = -0.5 * Gv * o * dL_da
-                    if use3:
-                        # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
-                        dq0 = 2.0 * drho * u * inv
-                        dq1 = 2.0 * drho * v * inv
-                        dq2 = -(2.0 * drho * (u * u + v * v) + dz * z) * inv
-                        gax0 += x * dq0
-                        gax1 += x * dq1
-                        gax2 += x * dq2
-                        gay0 += y * dq0
-                        gay1 += y * dq1
-                        gay2 += y * dq2
-                        g00 += dq0
-                        g01 += dq1
-                        g02 += dq2
-                        gdet += dz * inv
-                    else:
-                        # rho2 = 2 |(x, y) - c|^2, z = centre depth T_w2.
-                        gcx -= 4.0 * (x - cx) * drho
-                        gcy -= 4.0 * dy * drho
-                        gtw2 += dz
+                T = float(rec[r, R_T])
+                a = float(rec[r, R_A])
+                z = float(rec[r, R_Z])
+                iz = 1.0 / z
+                w = a * T
+                m = mscale * (1.0 - near * iz)
+                Wt = aux_W[py, px]
+                M1t = aux_M1[py, px]
+                gd = float(g_dist[py, px])
+                gq0, gq1, gq2 = gN[p, 0], gN[p, 1], gN[p, 2]
+                vsum = gA[p] + gD[p] * z + gq0 * n0 + gq1 * n1 + gq2 * n2
+                vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
+                for c in range(C):
+                    gf = float(g_feat[py, px, c])
+                    vsum += gf * fs[c]
+                    gfe[c] += gf * w
+                gn_0 += gq0 * w
+                gn_1 += gq1 * w
+                gn_2 += gq2 * w
+                dL_da = T * vsum - S[p] / (1.0 - a)
+                S[p] += w * vsum
+                dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
+                if med_local[py, px] == li:
+                    dz += float(g_med[py, px])
+                drho = 0.0
+                if not (flags & 512):  # the cap alpha = 0.99 has zero derivative
+                    gop += dL_da * a / o  # dalpha/do = G = alpha / o
+                    drho = -0.5 * a * dL_da
+                if flags & 256:
+                    # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
+                    u = float(rec[r, R_U])
+                    v = float(rec[r, R_V])
+                    inv = float(rec[r, R_INV])
+                    dq0 = 2.0 * drho * u * inv
+                    dq1 = 2.0 * drho * v * inv
+                    dq2 = -(2.0 * drho * (u * u + v * v) + dz * z) * inv
+                    gax0 += x * dq0
+                    gax1 += x * dq1
+                    gax2 += x * dq2
+                    gay0 += y * dq0
+                    gay1 += y * dq1
+                    gay2 += y * dq2
+                    g00 += dq0
+                    g01 += dq1
+                    g02 += dq2
+                    gdet += dz * inv
+                else:
+                    # rho2 = 2 |(x, y) - c|^2, z = centre depth T_w2.
+                    gcx -= 4.0 * (x - cx) * drho
+                    gcy -= 4.0 * (y - cy) * drho
+                    gtw2 += dz
             slots[j, S_AX], slots[j, S_AX + 1], slots[j, S_AX + 2] = gax0, gax1, gax2
             slots[j, S_AY], slots[j, S_AY + 1], slots[j, S_AY + 2] = gay0, gay1, gay2
             slots[j, S_A0], slots[j, S_A0 + 1], slots[j, S_A0 + 2] = g00, g01, g02

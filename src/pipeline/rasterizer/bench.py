@@ -188,7 +188,9 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
         repeats=len(fwd),
         pairs_per_s=round(g.box_pixels / (f_med + b_med)),
         peak_mb=round(peak, 1),
-        kept_mb=round((g.num_pairs * (K.S_FIXED + 3) * 8 + g.tile_list.nbytes + g.slot_of_emit.nbytes) / 2**20, 1),
+        kept_mb=round(
+            (int(g.rec_tile_start[-1]) * K.R_SIZE * s.means.element_size() + g.num_pairs * (K.S_FIXED + 3) * 8
+             + g.tile_list.nbytes + g.slot_of_emit.nbytes) / 2**20, 1),  # fmt: skip
         load_avg_1min=[round(load_before, 2), round(os.getloadavg()[0], 2)],
     )
     if backend == "cpu":

@@ -42,6 +42,7 @@ class Geometry:
     tile_list: np.ndarray
     emit_start: np.ndarray
     slot_of_emit: np.ndarray
+    rec_tile_start: np.ndarray  # each tile's region of the pair-record buffer
     tile_order: np.ndarray  # tiles by decreasing pair count (load balance)
     n_tx: int
 
@@ -86,9 +87,11 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     order = visible[np.argsort(depth[visible], kind="stable")]
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
-    tile_start, tile_list, emit_start, slot_of_emit = K.bin_tiles(order, box, n_tx, n_ty)
+    tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start = K.bin_tiles(order, box, n_tx, n_ty)
     tile_order = np.argsort(-np.diff(tile_start), kind="stable")
-    return Geometry(Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_emit, tile_order, n_tx)
+    return Geometry(
+        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start, tile_order, n_tx
+    )
 
 
 class _Rasterize(torch.autograd.Function):
@@ -102,30 +105,34 @@ class _Rasterize(torch.autograd.Function):
         maps = [np.empty((H, W, C), dtype)] + [np.empty((H, W), dtype) for _ in range(3)]
         maps += [np.empty((H, W, 3), dtype), np.empty((H, W, 3), dtype), np.empty((H, W), dtype)]
         aux = [np.empty((H, W), np.float64) for _ in range(5)]
-        n_contrib = np.empty((H, W), np.int32)
         med_local = np.empty((H, W), np.int32)
+        # Pair records for the backward, sized by the boxes' pixel count (an upper bound).
+        rec = np.empty((int(geom.rec_tile_start[-1]), K.R_SIZE), dtype)
+        rec_start = np.empty(geom.num_pairs, np.int64)
+        rec_count = np.empty(geom.num_pairs, np.int64)
         with numba.parallel_chunksize(1):
             K.forward(
                 geom.tile_start, geom.tile_list, geom.tile_order, geom.box, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
-                W, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, n_contrib, med_local,
+                W, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, med_local, geom.rec_tile_start,
+                rec, rec_start, rec_count,
             )  # fmt: skip
-        ctx.state = (geom, camera, depth_eps, feat, aux, n_contrib, med_local)
+        ctx.state = (geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count)
         ctx.save_for_backward(means, quats, scales)
         return tuple(torch.from_numpy(a) for a in maps)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
-        geom, camera, depth_eps, feat, aux, n_contrib, med_local = ctx.state
+        geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count = ctx.state
         means, quats, scales = ctx.saved_tensors
         P, C = feat.shape
         Kc, Rwc, _ = _camera_arrays(camera)
         slots = np.empty((geom.num_pairs, K.S_FIXED + C), np.float64)
         with numba.parallel_chunksize(1):
             K.backward(
-                geom.tile_start, geom.tile_list, geom.tile_order, geom.box, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
-                camera.width, geom.n_tx, camera.near, camera.far, depth_eps, *aux, n_contrib, med_local,
-                *(_np(g) for g in grads), slots,
+                geom.tile_start, geom.tile_list, geom.tile_order, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
+                camera.width, geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec, rec_start,
+                rec_count, *(_np(g) for g in grads), slots,
             )  # fmt: skip
         dtype = geom.Tm.dtype
         out = [np.zeros((P, 3), dtype), np.zeros((P, 4), dtype), np.zeros((P, 2), dtype), np.zeros(P, dtype)]
