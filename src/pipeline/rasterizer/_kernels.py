@@ -401,9 +401,10 @@ def forward(
                     rec[r, R_T] = T
                     rec[r, R_A] = a
                     rec[r, R_Z] = z
-                    rec[r, R_U] = u
-                    rec[r, R_V] = v
-                    rec[r, R_INV] = inv
+                    if use3:  # unused by the low-pass branch
+                        rec[r, R_U] = u
+                        rec[r, R_V] = v
+                        rec[r, R_INV] = inv
                     r += 1
             rec_count[j] = r - rec_start[j]
         for py in range(y0, y1):
