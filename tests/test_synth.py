@@ -10,7 +10,8 @@ from pipeline import geometry
 from pipeline.cli import main as gcgs
 from pipeline.data import dtu
 from pipeline.evaluation.gt import read_ground_truth, read_mesh
-from pipeline.synth import SCENES, Renderer, build_scene, raycast_depth, table_frame, write_synth_scene
+from pipeline.synth import SCENES, Renderer, build_scene, raycast_depth, shapes, table_frame, write_synth_scene
+from pipeline.synth.scenes import visible_gt_mesh
 
 W, H = 160, 120
 
@@ -191,6 +192,37 @@ def test_ground_truth_files_are_consistent(relief, cams):
     centre = gt.voxel_index(syn.to_world(np.array([[0.0, 0.0, 70.0]])))[0]  # 85 mm below the surface
     assert np.all(centre >= 0) and np.all(centre < gt.obs_mask.shape)
     assert not gt.obs_mask[tuple(centre)]
+
+
+@pytest.mark.parametrize("name", list(SCENES))
+def test_parts_are_outward_and_finely_meshed(name):
+    """Visibility culling relies on outward normals and small cells."""
+    for part in SCENES[name][1](0):
+        a, b, c = (part.vertices[part.triangles[:, k]] for k in range(3))
+        assert np.einsum("ij,ij->", a, np.cross(b, c)) / 6 > 0  # signed volume: normals point out
+        longest = np.max([np.linalg.norm(b - a, axis=1), np.linalg.norm(c - b, axis=1), np.linalg.norm(a - c, axis=1)])
+        assert longest < 2.5 * shapes.CELL_MM  # cell diagonals: up to ~1.5 cells
+
+
+def test_ground_truth_is_the_seen_surface_only(cams):
+    """The plinth top under the dome and the dome inside the plinth are never seen: they
+    must not be ground truth, while the dome's top and the plinth's rim are kept."""
+    syn = build_scene("synth_textureless", 0, cams)
+    V, F = visible_gt_mesh(syn, Renderer(syn), cams, (800, 600))
+    full_V, full_F = syn.gt_mesh_local()
+    assert 0.2 * len(full_F) < len(F) < 0.8 * len(full_F)
+    centroids = V[F].mean(axis=1)
+    dome = syn.parts[0].vertices
+    semi = np.array([dome[:, 0].max(), dome[:, 1].max(), (dome[:, 2].max() - 65.0)])  # ellipsoid centred at z = 65
+    r = np.linalg.norm((centroids - [0.0, 0.0, 65.0]) / semi, axis=1)
+    assert not np.any(r < 0.97)  # nothing inside the dome
+    plinth_r = syn.parts[1].vertices[:, 0].max()
+    inside_plinth = (np.hypot(centroids[:, 0] / plinth_r, centroids[:, 1] / syn.parts[1].vertices[:, 1].max()) < 0.97) \
+        & (centroids[:, 2] < 15.0) & (centroids[:, 2] > 1.0)
+    assert not np.any(inside_plinth)
+    top = (centroids[:, 2] > 65.0 + 0.8 * semi[2])
+    full_c = full_V[full_F].mean(axis=1)
+    assert top.sum() == np.sum(full_c[: len(syn.parts[0].triangles), 2] > 65.0 + 0.8 * semi[2])
 
 
 def test_cli_list_and_bad_arguments(capsys, tmp_path, bundled_scan):

@@ -19,6 +19,8 @@ AMBIENT, DIFFUSE = 0.3, 0.7
 # Adaptive anti-aliasing (see Renderer.shade): colour step that triggers supersampling.
 AA_THRESHOLD = 0.1
 AA_OFFSETS = ((-0.125, -0.375), (0.375, -0.125), (0.125, 0.375), (-0.375, 0.125))
+# A surface point counts as seen when nothing lies on its ray more than this before it.
+VISIBILITY_TOL_MM = 0.05
 
 
 def pixel_to_ray(K: np.ndarray, world_to_cam: np.ndarray, frame_to_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -224,3 +226,49 @@ class Renderer:
             sub = self._shade_samples(rays, self._trace(rays)).reshape(len(AA_OFFSETS), len(xs), 3)
             rgb[ys, xs] = sub.mean(axis=0)
         return rgb
+
+    def visible(self, points: np.ndarray, normals: np.ndarray, cameras, width: int, height: int) -> np.ndarray:
+        """Which surface points ``(N, 3)`` (local frame, mm) with outward ``normals`` some
+        camera sees: in front of it and inside its ``width x height`` image, on a face
+        turned towards it (so closed parts hide their far side), and with nothing of the
+        scene (object or table) on the ray more than ``VISIBILITY_TOL_MM`` before it.
+
+        ``cameras``: iterable of ``(K, world_to_cam)`` for images of that size.
+        """
+        points = np.ascontiguousarray(points, np.float64)
+        normals = np.ascontiguousarray(normals, np.float64)
+        seen = np.zeros(len(points), bool)
+        for K, world_to_cam in cameras:
+            origin, A = pixel_to_ray(K, world_to_cam, self.scene.local_to_world)
+            idx, rays = _visibility_rays(points, normals, np.flatnonzero(~seen), origin, np.linalg.inv(A),
+                                         width, height, VISIBILITY_TOL_MM)
+            blocked = self.raycaster.test_occlusions(o3d.core.Tensor(rays), tfar=1.0).numpy()
+            seen[idx[~blocked]] = True
+        return seen
+
+
+@numba.njit(cache=True)
+def _visibility_rays(points, normals, todo, origin, A_inv, width, height, tol_mm):
+    """Candidates of :meth:`Renderer.visible` for one camera: indices into ``points`` and
+    rays from the camera stopping ``tol_mm`` short of each point (``t`` in [0, 1])."""
+    idx = np.empty(todo.size, np.int64)
+    rays = np.empty((todo.size, 6), np.float32)
+    n = 0
+    for k in range(todo.size):
+        i = todo[k]
+        d0, d1, d2 = points[i, 0] - origin[0], points[i, 1] - origin[1], points[i, 2] - origin[2]
+        if d0 * normals[i, 0] + d1 * normals[i, 1] + d2 * normals[i, 2] >= 0:  # faces away
+            continue
+        z = A_inv[2, 0] * d0 + A_inv[2, 1] * d1 + A_inv[2, 2] * d2
+        if z <= 0:
+            continue
+        x = (A_inv[0, 0] * d0 + A_inv[0, 1] * d1 + A_inv[0, 2] * d2) / z
+        y = (A_inv[1, 0] * d0 + A_inv[1, 1] * d1 + A_inv[1, 2] * d2) / z
+        if x < -0.5 or x >= width - 0.5 or y < -0.5 or y >= height - 0.5:
+            continue
+        scale = 1.0 - tol_mm / np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        idx[n] = i
+        rays[n, 0], rays[n, 1], rays[n, 2] = origin[0], origin[1], origin[2]
+        rays[n, 3], rays[n, 4], rays[n, 5] = d0 * scale, d1 * scale, d2 * scale
+        n += 1
+    return idx[:n], rays[:n]

@@ -60,25 +60,11 @@ class SynthScene:
         return np.r_[up, -up @ origin]
 
     def gt_mesh_local(self) -> tuple[np.ndarray, np.ndarray]:
-        """The object's parts plus a disk of ground around its footprint (local mm)."""
-        verts, tris, n = [], [], 0
-        for p in self.parts:
-            verts.append(p.vertices)
-            tris.append(p.triangles + n)
-            n += len(p.vertices)
-        allv = np.concatenate(verts)
-        radius = np.linalg.norm(allv[:, :2], axis=1).max() + GT_GROUND_MARGIN_MM
-        ang = np.linspace(0, 2 * np.pi, 129)[:-1]
-        disk = np.c_[radius * np.cos(ang), radius * np.sin(ang), np.zeros_like(ang)]
-        disk = np.r_[[[0.0, 0.0, 0.0]], disk]
-        fan = np.stack([np.zeros(128, np.int64), 1 + np.arange(128), 1 + (np.arange(128) + 1) % 128], axis=1)
-        verts.append(disk)
-        tris.append(fan + n)
-        return np.concatenate(verts), np.concatenate(tris)
-
-    def gt_ground_radius_mm(self) -> float:
+        """The object's parts plus a disk of table reaching ``GT_GROUND_MARGIN_MM`` beyond
+        its footprint (local mm), hidden parts included (see :func:`visible_gt_mesh`)."""
         allv = np.concatenate([p.vertices for p in self.parts])
-        return float(np.linalg.norm(allv[:, :2], axis=1).max() + GT_GROUND_MARGIN_MM)
+        radius = np.linalg.norm(allv[:, :2], axis=1).max() + GT_GROUND_MARGIN_MM
+        return shapes.merge([(p.vertices, p.triangles) for p in self.parts] + [shapes.ground_disk(radius)])
 
 
 def table_frame(cams: dtu.DTUCameras) -> np.ndarray:
@@ -130,6 +116,25 @@ def build_scene(name: str, seed: int, cams: dtu.DTUCameras) -> SynthScene:
     return SynthScene(name, scan_id, seed, builder(seed), T, light / np.linalg.norm(light))
 
 
+def visible_gt_mesh(scene: SynthScene, renderer: Renderer, cams: dtu.DTUCameras,
+                    image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The GT mesh (local mm) cut down to the triangles some camera sees (by centroid,
+    see :meth:`Renderer.visible`), as DTU's scanned points cover only what its cameras
+    saw: surfaces inside other parts, on the table or in unseen hollows would otherwise
+    count as missed in the completeness of even a perfect reconstruction. The primitives'
+    cells are at most ``shapes.CELL_MM``, which bounds what a partly seen triangle adds.
+    """
+    V, F = scene.gt_mesh_local()
+    a, b, c = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    seen = renderer.visible((a + b + c) / 3, np.cross(b - a, c - a), ((cams.K[v], cams.world_to_cam[v]) for v in cams.ids),
+                            *image_size)
+    F = F[seen]
+    used = np.unique(F)
+    remap = np.zeros(len(V), np.int64)
+    remap[used] = np.arange(len(used))
+    return V[used], remap[F]
+
+
 def write_synth_scene(
     name: str,
     out_dir: str | Path,
@@ -152,30 +157,21 @@ def write_synth_scene(
     scene = build_scene(name, seed, cams)
     renderer = Renderer(scene)
     K = {v: geometry.scale_intrinsics(cams.K[v], width / src_w, height / src_h) for v in cams.ids}
-    v_local, tris = scene.gt_mesh_local()
-    # Observed GT surface, for the ObsMask: 2 mm cells of the GT mesh's box (local frame)
-    # holding a pixel-centre hit on the object or on the GT table disk, in any view.
-    cell_mm, lo = 2.0, v_local.min(axis=0) - 1.0
-    seen = np.zeros(tuple(np.ceil((v_local.max(axis=0) + 1.0 - lo) / cell_mm).astype(int)), bool)
-    ground_r = scene.gt_ground_radius_mm()
     images, masks = {}, {}
     for v in cams.ids:
         hits = renderer.cast(K[v], cams.world_to_cam[v], width, height)
         images[v] = renderer.shade(hits)
         masks[v] = renderer.object_mask(hits)
-        pts = renderer.points_local(hits, hits["hit"])
-        pts = pts[masks[v][hits["hit"]] | (np.hypot(pts[:, 0], pts[:, 1]) < ground_r)]
-        idx = ((pts - lo) / cell_mm).astype(np.int64)
-        seen[idx[:, 0], idx[:, 1], idx[:, 2]] = True
     say(f"[synth] {name}: rendered {len(cams.ids)} views at {width}x{height} ({time.perf_counter() - t0:.1f} s)")
-    observed_pts = scene.to_world(np.argwhere(seen) * cell_mm + lo + cell_mm / 2)
+    v_local, tris = visible_gt_mesh(scene, renderer, cams, (src_w, src_h))
+    v_world = scene.to_world(v_local)
 
     parent = Path(out_dir).resolve().parent
     parent.mkdir(parents=True, exist_ok=True)
     gt_tmp = Path(tempfile.mkdtemp(prefix=".gt.", dir=parent))
     try:
-        write_ground_truth(gt_tmp, scene.scan_id, scene.to_world(v_local), tris, scene.ground_plane(),
-                           observed_points_mm=observed_pts, seed=seed)
+        # Every GT triangle is seen, so the ObsMask is the GT points' voxels (the default).
+        write_ground_truth(gt_tmp, scene.scan_id, v_world, tris, scene.ground_plane(), seed=seed)
         meta = {
             "name": name,
             "scan_id": scene.scan_id,

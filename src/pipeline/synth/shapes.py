@@ -20,6 +20,11 @@ class Part:
     smooth: bool
 
 
+# Largest cell of the primitives (mm): fine enough that culling hidden triangles from the
+# ground truth (scenes.visible_gt_mesh) leaves at most this much of hidden surface.
+CELL_MM = 2.0
+
+
 def _arrays(mesh: o3d.geometry.TriangleMesh) -> tuple[np.ndarray, np.ndarray]:
     return np.asarray(mesh.vertices, np.float64).copy(), np.asarray(mesh.triangles, np.int64).copy()
 
@@ -40,19 +45,83 @@ def drop_below_ground(v: np.ndarray, f: np.ndarray, z_min: float = -2.0) -> tupl
     return v[used], remap[keep_f]
 
 
-def box(size: tuple[float, float, float], corner: tuple[float, float, float]) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box with sharp edges: 12 triangles, min corner at ``corner``."""
-    v, f = _arrays(o3d.geometry.TriangleMesh.create_box(*size))
-    return v + np.asarray(corner), f
+def _grid_triangles(nu: int, nv: int, offset: int = 0) -> np.ndarray:
+    """Triangles of a ``(nv + 1) x (nu + 1)`` row-major vertex grid, counter-clockwise when
+    u runs right and v up."""
+    i, j = np.meshgrid(np.arange(nu), np.arange(nv))
+    a = (j * (nu + 1) + i).ravel() + offset
+    b, c, d = a + 1, a + nu + 2, a + nu + 1
+    return np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
 
 
-def cylinder(radius: float, height: float, base_xy: tuple[float, float], segments: int = 48) -> tuple[np.ndarray, np.ndarray]:
-    """Vertical closed cylinder standing on z = 0."""
-    mesh = o3d.geometry.TriangleMesh.create_cylinder(radius=radius, height=height, resolution=segments, split=8)
-    v, f = _arrays(mesh)
-    v[:, 2] += height / 2.0
+def merge(pieces: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh from several ``(vertices, triangles)``."""
+    verts, tris, n = [], [], 0
+    for v, f in pieces:
+        verts.append(v)
+        tris.append(f + n)
+        n += len(v)
+    return np.concatenate(verts), np.concatenate(tris)
+
+
+def rectangle(origin, eu, ev, cell_mm: float = CELL_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Planar grid over ``origin + s eu + t ev`` (s, t in [0, 1]), cells <= ``cell_mm``;
+    its normal is ``eu x ev``."""
+    origin, eu, ev = (np.asarray(a, np.float64) for a in (origin, eu, ev))
+    nu = max(1, int(np.ceil(np.linalg.norm(eu) / cell_mm)))
+    nv = max(1, int(np.ceil(np.linalg.norm(ev) / cell_mm)))
+    s, t = np.meshgrid(np.linspace(0, 1, nu + 1), np.linspace(0, 1, nv + 1))
+    v = origin + s.reshape(-1, 1) * eu + t.reshape(-1, 1) * ev
+    return v, _grid_triangles(nu, nv)
+
+
+def box(size: tuple[float, float, float], corner: tuple[float, float, float],
+        cell_mm: float = CELL_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box with sharp edges (each face its own grid), min corner at
+    ``corner``, normals outwards."""
+    (sx, sy, sz), c = size, np.asarray(corner, np.float64)
+    X, Y, Z = np.array([sx, 0, 0.0]), np.array([0, sy, 0.0]), np.array([0, 0, sz])
+    faces = [(c, Y, X), (c + Z, X, Y), (c, X, Z), (c + Y, Z, X), (c, Z, Y), (c + X, Y, Z)]
+    return merge([rectangle(o, eu, ev, cell_mm) for o, eu, ev in faces])
+
+
+def _polar_cap(radius: float, z: float, segments: int, cell_mm: float, up: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Disk of ``radius`` at height ``z``: centre plus rings <= ``cell_mm`` apart."""
+    rings = max(1, int(np.ceil(radius / cell_mm)))
+    ang = 2 * np.pi * np.arange(segments) / segments
+    r = radius * np.arange(1, rings + 1) / rings
+    ring_v = np.stack([np.outer(r, np.cos(ang)), np.outer(r, np.sin(ang)), np.full((rings, segments), z)], -1)
+    v = np.concatenate([[[0.0, 0.0, z]], ring_v.reshape(-1, 3)])
+    k = np.arange(segments)
+    k1 = (k + 1) % segments
+    fan = np.stack([np.zeros(segments, np.int64), 1 + k, 1 + k1], 1)
+    j = np.arange(rings - 1)[:, None] * segments
+    a, b, c, d = (1 + j + k).ravel(), (1 + j + k1).ravel(), (1 + j + segments + k1).ravel(), (1 + j + segments + k).ravel()
+    f = np.concatenate([fan, np.stack([a, d, c], 1), np.stack([a, c, b], 1)])  # counter-clockwise from above
+    return v, (f if up else f[:, ::-1])
+
+
+def cylinder(radius: float, height: float, base_xy: tuple[float, float],
+             cell_mm: float = CELL_MM) -> tuple[np.ndarray, np.ndarray]:
+    """Vertical closed cylinder standing on z = 0, normals outwards. Wall and caps have
+    their own vertices, so smooth shading keeps the rim sharp."""
+    segments = max(48, int(np.ceil(2 * np.pi * radius / cell_mm)))
+    rows = max(1, int(np.ceil(height / cell_mm)))
+    ang = 2 * np.pi * np.arange(segments + 1) / segments  # the seam column repeats
+    zs = np.linspace(0.0, height, rows + 1)
+    wall = np.stack([np.broadcast_to(radius * np.cos(ang), (rows + 1, segments + 1)),
+                     np.broadcast_to(radius * np.sin(ang), (rows + 1, segments + 1)),
+                     np.broadcast_to(zs[:, None], (rows + 1, segments + 1))], -1).reshape(-1, 3)
+    v, f = merge([(wall, _grid_triangles(segments, rows)),
+                   _polar_cap(radius, height, segments, cell_mm, up=True),
+                   _polar_cap(radius, 0.0, segments, cell_mm, up=False)])
     v[:, :2] += np.asarray(base_xy)
     return v, f
+
+
+def ground_disk(radius: float, cell_mm: float = CELL_MM) -> tuple[np.ndarray, np.ndarray]:
+    """The table around an object, as a disk at z = 0 facing up."""
+    return _polar_cap(radius, 0.0, max(48, int(np.ceil(2 * np.pi * radius / cell_mm))), cell_mm, up=True)
 
 
 def textureless_blob(seed: int) -> list[Part]:
@@ -63,7 +132,7 @@ def textureless_blob(seed: int) -> list[Part]:
     a, b, c = 110.0 + rng.uniform(-8, 8), 90.0 + rng.uniform(-8, 8), 80.0
     v = v * [a, b, c] + [0.0, 0.0, 65.0]
     v, f = drop_below_ground(v, f)
-    ring_v, ring_f = cylinder(radius=a + 8.0, height=16.0, base_xy=(0.0, 0.0), segments=96)
+    ring_v, ring_f = cylinder(radius=a + 8.0, height=16.0, base_xy=(0.0, 0.0))
     ring_v[:, 1] *= (b + 8.0) / (a + 8.0)
     return [Part(v, f, "plain", True), Part(ring_v, ring_f, "noise", False)]
 
