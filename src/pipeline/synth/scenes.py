@@ -28,7 +28,7 @@ MAX_ROLL_RATIO = 0.1  # see table_frame
 SCENES: dict[str, tuple[int, Callable[[int], list[shapes.Part]], str]] = {
     "synth_textureless": (1001, shapes.textureless_blob, "a large smooth region of one plain colour"),
     "synth_relief": (1002, shapes.relief_sphere, "fine high-frequency geometric detail (~1.5 mm bumps, 3-8 mm periods)"),
-    "synth_thin": (1003, shapes.thin_structures, "thin fins and rods (2-3.5 mm) and sharp box edges"),
+    "synth_thin": (1003, shapes.thin_structures, "thin fins (2-3.5 mm) and rods (4-6 mm) and sharp box edges"),
 }
 
 
@@ -177,7 +177,8 @@ def write_synth_scene(
             "scan_id": scene.scan_id,
             "seed": seed,
             "source": "synthetic",
-            "units": "world frame in mm (DTU frame of the camera source)",
+            "units": "mm",
+            "frame": "DTU world frame of the camera source",
             "stresses": SCENES[name][2],
             "cameras_from": str(cameras_dir),
             "width": width,
