@@ -40,10 +40,12 @@ def tiny_repo(tmp_path_factory) -> Path:
 
 def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     first = _dvc(tiny_repo, "repro")
-    for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief"):
+    for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
+                  "baseline"):
         assert f"Running stage '{stage}'" in first
     assert (tiny_repo / "data/init/synth_relief/points.ply").is_file()
     assert (tiny_repo / "data/scenes/synth_relief/cameras_sphere.npz").is_file()
+    assert "synth_relief" in (tiny_repo / "reports/baseline.md").read_text()
 
     second = _dvc(tiny_repo, "repro")
     assert "Running stage" not in second

@@ -216,7 +216,11 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     return cls(**data)
 
 
-def load_params(path: str | Path = PARAMS_PATH) -> dict[str, Any]:
+def load_params(path: str | Path | None = None) -> dict[str, Any]:
+    """Read a params file. Default: ``params.yaml`` of the working directory (DVC runs each
+    stage in its project's root), else this repository's."""
+    if path is None:
+        path = Path("params.yaml") if Path("params.yaml").is_file() else PARAMS_PATH
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: params file not found")
