@@ -26,9 +26,9 @@ def _composite(x: Tensor, y: Tensor, T: Tensor, o: Tensor, n: Tensor, f: Tensor,
     Returns ``[features (N, C), alpha, depth_sum, normal (N, 3), median, distortion]``.
     """
     Tu, Tv, Tw = T[None, :, 0, :], T[None, :, 1, :], T[None, :, 2, :]  # (1, P, 3)
-    k = x[:, None, None] * Tw - Tu  # (N, P, 3): plane x T_w - T_u in uv-space
-    l = y[:, None, None] * Tw - Tv
-    q = torch.linalg.cross(k, l, dim=-1)  # homogeneous (u, v, 1) of the intersection
+    k_plane = x[:, None, None] * Tw - Tu  # (N, P, 3): planes k = x T_w - T_u, l = y T_w - T_v in uv-space
+    l_plane = y[:, None, None] * Tw - Tv
+    q = torch.linalg.cross(k_plane, l_plane, dim=-1)  # homogeneous (u, v, 1) of the intersection
     q0, q1, q2 = q.unbind(-1)
     parallel = q2.abs() * UV_MAX <= torch.maximum(q0.abs(), q1.abs())
     q2s = torch.where(parallel, torch.ones_like(q2), q2)
