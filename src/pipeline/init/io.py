@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import atomic
+from pipeline.npz import read_npz
 
 
 class InitFormatError(ValueError):
@@ -151,16 +152,7 @@ def write_depth(path: str | Path, d: DepthMap) -> Path:
 def read_depth(path: str | Path) -> DepthMap:
     """Read and check a depth file; errors name the file and the problem."""
     path = Path(path)
-    if not path.is_file():
-        raise InitFormatError(f"{path}: file not found")
-    try:
-        with np.load(path) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:  # zip/format errors vary; name the file
-        raise InitFormatError(f"{path}: cannot read depth file ({exc})") from exc
-    missing = [k for k in DEPTH_KEYS if k not in data]
-    if missing:
-        raise InitFormatError(f"{path}: missing key(s) {missing}")
+    data = read_npz(path, DEPTH_KEYS, InitFormatError, "depth")
     depth, conf, valid = data["depth_mm"], data["confidence"], data["valid"]
     if depth.ndim != 2 or conf.shape != depth.shape or valid.shape != depth.shape:
         raise InitFormatError(f"{path}: depth_mm {depth.shape}, confidence {conf.shape} and valid {valid.shape} must be equal (H, W)")

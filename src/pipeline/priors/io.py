@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import atomic
+from pipeline.npz import read_npz
 
 
 class PriorsFormatError(ValueError):
@@ -69,23 +70,9 @@ def write_features(path: str | Path, p: FeaturePrior, dtype: str = "float16") ->
                          backend=np.str_(p.backend))
 
 
-def _load(path: Path, keys: tuple[str, ...]) -> dict:
-    if not path.is_file():
-        raise PriorsFormatError(f"{path}: file not found")
-    try:
-        with np.load(path) as z:
-            data = {k: z[k] for k in z.files}
-    except Exception as exc:  # zip/format errors vary; name the file
-        raise PriorsFormatError(f"{path}: cannot read priors file ({exc})") from exc
-    missing = [k for k in keys if k not in data]
-    if missing:
-        raise PriorsFormatError(f"{path}: missing key(s) {missing}")
-    return data
-
-
 def read_normals(path: str | Path) -> NormalPrior:
     path = Path(path)
-    d = _load(path, ("normal_cam", "valid", "view_id", "backend"))
+    d = read_npz(path, ("normal_cam", "valid", "view_id", "backend"), PriorsFormatError, "priors")
     n, valid = d["normal_cam"], d["valid"]
     if n.ndim != 3 or n.shape[2] != 3 or valid.shape != n.shape[:2]:
         raise PriorsFormatError(f"{path}: normal_cam {n.shape} must be (H, W, 3) and valid {valid.shape} (H, W)")
@@ -96,7 +83,7 @@ def read_normals(path: str | Path) -> NormalPrior:
 
 def read_features(path: str | Path) -> FeaturePrior:
     path = Path(path)
-    d = _load(path, ("features", "image_size", "view_id", "backend"))
+    d = read_npz(path, ("features", "image_size", "view_id", "backend"), PriorsFormatError, "priors")
     f, size = d["features"], d["image_size"]
     if f.ndim != 3 or size.shape != (2,):
         raise PriorsFormatError(f"{path}: features {f.shape} must be (C, h, w) and image_size (2,)")
