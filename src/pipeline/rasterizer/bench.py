@@ -28,6 +28,7 @@ import numba
 import psutil
 import torch
 
+from pipeline import atomic
 from pipeline.rasterizer import Surfels, rasterize
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu as cpu_backend
@@ -295,8 +296,10 @@ def run(args: argparse.Namespace) -> int:
                 f"peak {rec['peak_mb']:.0f} MB, load {rec['load_avg_1min'][0]:.1f}",
                 flush=True,
             )
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    (args.out_dir / "rasterizer.json").write_text(json.dumps(records, indent=1) + "\n")
-    (args.out_dir / "rasterizer.md").write_text(_markdown(records, meta))
-    print(f"wrote {args.out_dir / 'rasterizer.json'} and {args.out_dir / 'rasterizer.md'}")
+    # --quick writes beside the full run's report instead of replacing it.
+    stem = "rasterizer_quick" if args.quick else "rasterizer"
+    json_path, md_path = args.out_dir / f"{stem}.json", args.out_dir / f"{stem}.md"
+    atomic.write_text(json_path, json.dumps(records, indent=1) + "\n")
+    atomic.write_text(md_path, _markdown(records, meta))
+    print(f"wrote {json_path} and {md_path}")
     return 0
