@@ -209,13 +209,8 @@ def evaluate_mesh(
     say(f"[evaluate] downsampled to {len(data)} points, radius {cfg.downsample_radius_mm} mm "
         f"({lap('downsample'):.1f} s)")
 
-    bb, patch = gt.bb_mm, cfg.patch_mm
-    inbound = ((data >= bb[0] - patch) & (data < bb[1] + 2 * patch)).all(axis=1)
+    inbound, in_obs = gt.box_and_observed(data, cfg.patch_mm)
     data_in = data[inbound]
-    vox = gt.voxel_index(data_in)
-    in_grid = ((vox >= 0) & (vox < np.array(gt.obs_mask.shape))).all(axis=1)
-    in_obs = np.zeros(len(data_in), bool)
-    in_obs[in_grid] = gt.obs_mask[tuple(vox[in_grid].T)]
     data_in_obs = data_in[in_obs]
     counts.update(data_in_bb=len(data_in), data_in_obs=len(data_in_obs))
     say(f"[evaluate] {len(data_in)} points in the bounding box (+patch), {len(data_in_obs)} in the observation "

@@ -55,6 +55,18 @@ class GroundTruth:
         """ObsMask voxel of each point (int64 (N, 3), may be out of range)."""
         return np.around((points_mm - self.bb_mm[0]) / self.res_mm).astype(np.int64)
 
+    def box_and_observed(self, points_mm: np.ndarray, patch_mm: float) -> tuple[np.ndarray, np.ndarray]:
+        """Step 3 of the protocol: ``(inbound (N,), observed (M,))`` where ``inbound`` marks
+        points with ``BB[0] - patch <= p < BB[1] + 2 patch`` and ``observed`` marks which of
+        those ``M`` in-box points fall in a set ObsMask voxel."""
+        bb = self.bb_mm
+        inbound = ((points_mm >= bb[0] - patch_mm) & (points_mm < bb[1] + 2 * patch_mm)).all(axis=1)
+        vox = self.voxel_index(points_mm[inbound])
+        in_grid = ((vox >= 0) & (vox < np.array(self.obs_mask.shape))).all(axis=1)
+        observed = np.zeros(len(vox), bool)
+        observed[in_grid] = self.obs_mask[tuple(vox[in_grid].T)]
+        return inbound, observed
+
     def above_plane(self, points_mm: np.ndarray) -> np.ndarray:
         """``[x, y, z, 1] . P > 0``, per coordinate (no BLAS call: see ``cull_vertices``)."""
         P = self.plane

@@ -222,6 +222,15 @@ def bin_tiles(order, box, n_tx, n_ty):
 
 
 @njit(inline="always")
+def _tile_bounds(t, n_tx, width, height):
+    """Pixel range ``[x0, x1) x [y0, y1)`` of tile ``t`` (row-major, ``n_tx`` per row)."""
+    ty = t // n_tx
+    x0 = (t - ty * n_tx) * TILE
+    y0 = ty * TILE
+    return x0, y0, min(x0 + TILE, width), min(y0 + TILE, height)
+
+
+@njit(inline="always")
 def _row_span(x_lo, x_hi, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max):
     """Pixels ``x_lo..x_hi`` of a row that can pass ``rho <= rho_max`` (conservative).
 
@@ -318,11 +327,7 @@ def forward(
     mscale = far / (far - near)
     for it in prange(tile_order.shape[0]):
         t = tile_order[it]
-        ty = t // n_tx
-        x0 = (t - ty * n_tx) * TILE
-        y0 = ty * TILE
-        x1 = min(x0 + TILE, width)
-        y1 = min(y0 + TILE, height)
+        x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
         tw = x1 - x0
         npx = tw * (y1 - y0)
         Tr = np.ones(npx)
@@ -451,11 +456,7 @@ def backward(
     mscale = far / (far - near)
     for it in prange(tile_order.shape[0]):
         t = tile_order[it]
-        ty = t // n_tx
-        x0 = (t - ty * n_tx) * TILE
-        y0 = ty * TILE
-        x1 = min(x0 + TILE, width)
-        y1 = min(y0 + TILE, height)
+        x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
         tw = x1 - x0
         npx = tw * (y1 - y0)
         S = np.zeros(npx)

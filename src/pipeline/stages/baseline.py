@@ -99,13 +99,8 @@ def cloud_metrics(points: np.ndarray, ground: gt_io.GroundTruth, cfg: EvaluateCo
     else:
         d_surf, _ = cKDTree(ground.points_mm).query(points)
         surface = "GT points"
-    bb, patch = ground.bb_mm, cfg.patch_mm
-    inbound = ((points >= bb[0] - patch) & (points < bb[1] + 2 * patch)).all(axis=1)
+    inbound, in_obs = ground.box_and_observed(points, cfg.patch_mm)
     data_in = points[inbound]
-    vox = ground.voxel_index(data_in)
-    in_grid = ((vox >= 0) & (vox < np.array(ground.obs_mask.shape))).all(axis=1)
-    in_obs = np.zeros(len(data_in), bool)
-    in_obs[in_grid] = ground.obs_mask[tuple(vox[in_grid].T)]
     d_acc, _ = cKDTree(ground.points_mm).query(data_in[in_obs], distance_upper_bound=cfg.max_dist_mm)
     gt_above = ground.points_mm[ground.above_plane(ground.points_mm)]
     if len(data_in):
@@ -229,7 +224,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work", default="data/baseline", help="folder for the clouds, meshes and metrics")
     p.add_argument("--report", default="reports/baseline", help="writes REPORT.json and REPORT.md")
     p.add_argument("--mast3r-model", default=None, help="MASt3R ONNX file (default: init.mast3r.model)")
-    p.add_argument("--params", default=None, help="params.yaml (default: the repo's)")
+    p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
     p.add_argument("--note", action="append", default=[], help="a line for the report's notes")
 
 

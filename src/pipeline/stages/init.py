@@ -85,7 +85,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=sorted(BACKEND_MODULES), default=None, help="default: init.backend")
     p.add_argument("--model", default=None, help="ONNX model file (mast3r backend); default: init.mast3r.model")
     p.add_argument("--out-dir", required=True, help="output folder (points.ply, depth/, init.json)")
-    p.add_argument("--params", default=None, help="params.yaml to read `init` from (default: the repo's)")
+    p.add_argument("--params", default=None, help="params.yaml to read `init` from (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:

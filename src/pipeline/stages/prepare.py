@@ -57,7 +57,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--src", required=True, help="DTU-layout scan folder")
     p.add_argument("--out", required=True, help="output scene folder")
     p.add_argument("--name", default=None, help="scene name (default: from scene.json or the folder)")
-    p.add_argument("--params", default=None, help="params.yaml to read `data` from (default: the repo's)")
+    p.add_argument("--params", default=None, help="params.yaml to read `data` from (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:

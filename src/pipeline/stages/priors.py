@@ -146,7 +146,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", choices=PriorsConfig.FEATURES, default=None, help="default: priors.features")
     p.add_argument("--dsine-model", default=None, help="default: priors.dsine_model")
     p.add_argument("--vismvsnet-model", default=None, help="default: priors.vismvsnet_model")
-    p.add_argument("--params", default=None, help="params.yaml to read `priors` and `loss` from (default: the repo's)")
+    p.add_argument("--params", default=None, help="params.yaml to read `priors` and `loss` from (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:
