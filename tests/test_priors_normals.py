@@ -76,8 +76,8 @@ def test_dsine_padding_and_sign_convention(tmp_path):
     conversion they must equal the analytic normals facing the camera."""
     model = load_onnx(export_fake_dsine(tmp_path / "dsine.onnx"), DSINE_CONTRACT)
     img = np.random.default_rng(0).uniform(size=(H, W, 3)).astype(np.float32)
-    inputs, (l, r, t, b) = dsine_inputs(img, K)
-    assert inputs["image"].shape == (1, 3, 96, 128) and (l, r, t, b) == (14, 14, 10, 11)
+    inputs, (left, r, t, b) = dsine_inputs(img, K)
+    assert inputs["image"].shape == (1, 3, 96, 128) and (left, r, t, b) == (14, 14, 10, 11)
     n, ok = dsine_normals(model, img, K)
     depth, n_gt, hit, rays = sphere_gt()
     assert ok[hit].all()

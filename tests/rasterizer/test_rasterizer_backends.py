@@ -149,3 +149,22 @@ def test_radii_mark_visible_surfels():
     assert out.radii.dtype == torch.int32
     assert out.radii[0] == 0 and out.radii[1] == 0
     assert (out.radii[2:] > 0).float().mean() > 0.8
+
+
+@pytest.mark.parametrize("n_workers", [1, 2, 3, 8])
+def test_tile_schedule_partitions_and_balances(n_workers):
+    """Every tile goes to exactly one worker; loads within the LPT bound (mean + one tile),
+    also for a largest-first cost list (the case a contiguous prange split got wrong)."""
+    import numpy as np
+
+    from pipeline.rasterizer import _kernels as K
+
+    rng = np.random.default_rng(n_workers)
+    for cost in (rng.pareto(1.5, 300) * 100, np.sort(rng.random(475))[::-1] * 1e4, np.zeros(5)):
+        start, tiles = K.schedule_tiles(cost.astype(np.float64), n_workers)
+        assert start.shape == (n_workers + 1,) and start[0] == 0 and start[-1] == cost.size
+        assert np.array_equal(np.sort(tiles), np.arange(cost.size))
+        loads = np.array([cost[tiles[start[k] : start[k + 1]]].sum() for k in range(n_workers)])
+        assert loads.max() <= cost.sum() / n_workers + cost.max() + 1e-9
+        for k in range(n_workers):  # each worker renders its tiles largest first
+            assert np.all(np.diff(cost[tiles[start[k] : start[k + 1]]]) <= 0)

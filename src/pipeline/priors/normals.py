@@ -91,13 +91,13 @@ def dsine_inputs(image: np.ndarray, K: np.ndarray) -> tuple[dict[str, np.ndarray
     with black to multiples of 32 and then ImageNet-normalised (as DSINE's demo), and
     ``K`` with the principal point moved by the padding. Returns ``(inputs, lrtb)``."""
     H, W = image.shape[:2]
-    l, r, t, b = dsine_padding(H, W)
-    padded = cv2.copyMakeBorder(image.astype(np.float32), t, b, l, r, cv2.BORDER_CONSTANT, value=0.0)
+    left, r, t, b = dsine_padding(H, W)
+    padded = cv2.copyMakeBorder(image.astype(np.float32), t, b, left, r, cv2.BORDER_CONSTANT, value=0.0)
     x = ((padded - IMAGENET_MEAN) / IMAGENET_STD).transpose(2, 0, 1)[None]
     Kp = np.asarray(K, np.float64).copy()
-    Kp[0, 2] += l
+    Kp[0, 2] += left
     Kp[1, 2] += t
-    return {"image": np.ascontiguousarray(x, np.float32), "intrinsics": Kp[None].astype(np.float32)}, (l, r, t, b)
+    return {"image": np.ascontiguousarray(x, np.float32), "intrinsics": Kp[None].astype(np.float32)}, (left, r, t, b)
 
 
 def dsine_normals(model: OnnxModel, image: np.ndarray, K: np.ndarray, where: str = "image") -> tuple[np.ndarray, np.ndarray]:
@@ -109,9 +109,9 @@ def dsine_normals(model: OnnxModel, image: np.ndarray, K: np.ndarray, where: str
     if image.ndim != 3 or image.shape[2] != 3:
         raise NormalError(f"{where}: image must be (H, W, 3) RGB, got shape {image.shape}")
     H, W = image.shape[:2]
-    inputs, (l, _, t, _) = dsine_inputs(image, K)
+    inputs, (left, _, t, _) = dsine_inputs(image, K)
     out = model.run(**inputs)["normal"][0]  # (3, H+pad, W+pad)
-    n_dsine = out[:, t:t + H, l:l + W].transpose(1, 2, 0).astype(np.float64)
+    n_dsine = out[:, t:t + H, left:left + W].transpose(1, 2, 0).astype(np.float64)
     norm = np.linalg.norm(n_dsine, axis=-1)
     n = -n_dsine / np.maximum(norm, 1e-12)[..., None]  # DSINE points away from the camera
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)

@@ -221,6 +221,37 @@ def bin_tiles(order, box, n_tx, n_ty):
     return tile_start, tile_list, emit_start, slot_of_emit, np.cumsum(capacity)
 
 
+@njit(cache=True)
+def schedule_tiles(cost, n_workers):
+    """Split the tiles over ``n_workers`` by longest-processing-time-first: tiles by
+    decreasing ``cost``, each to the least loaded worker. Returns ``worker_start
+    (n_workers + 1)`` and ``worker_tiles``: worker ``k`` renders
+    ``worker_tiles[worker_start[k]:worker_start[k + 1]]``, largest first.
+
+    The kernels run one ``prange`` iteration per worker: numba's scheduler splits a
+    ``prange`` into contiguous blocks, so a largest-first tile list gave one thread all
+    the large tiles (measured: 2 threads barely faster than 1). The split only changes
+    which thread renders a tile, never a result.
+    """
+    n = cost.shape[0]
+    order = np.argsort(-cost, kind="mergesort")
+    load = np.zeros(n_workers)
+    owner = np.empty(n, np.int64)
+    counts = np.zeros(n_workers + 1, np.int64)
+    for k in range(n):
+        w = np.argmin(load)
+        load[w] += cost[order[k]]
+        owner[k] = w
+        counts[w + 1] += 1
+    worker_start = np.cumsum(counts)
+    fill = worker_start[:-1].copy()
+    worker_tiles = np.empty(n, np.int64)
+    for k in range(n):
+        worker_tiles[fill[owner[k]]] = order[k]
+        fill[owner[k]] += 1
+    return worker_start, worker_tiles
+
+
 @njit(inline="always")
 def _tile_bounds(t, n_tx, width, height):
     """Pixel range ``[x0, x1) x [y0, y1)`` of tile ``t`` (row-major, ``n_tx`` per row)."""
@@ -309,7 +340,7 @@ def _pair(x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, i
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def forward(
-    tile_start, tile_list, tile_order, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    tile_start, tile_list, worker_start, worker_tiles, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
     out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld, out_dist,
     aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec_tile_start, rec, rec_start, rec_count,
 ):  # fmt: skip
@@ -325,119 +356,120 @@ def forward(
     height = out_alpha.shape[0]
     C = feat.shape[1]
     mscale = far / (far - near)
-    for it in prange(tile_order.shape[0]):
-        t = tile_order[it]
-        x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
-        tw = x1 - x0
-        npx = tw * (y1 - y0)
-        Tr = np.ones(npx)
-        Ws = np.zeros(npx)
-        M1 = np.zeros(npx)
-        M2 = np.zeros(npx)
-        D = np.zeros(npx)
-        med = np.zeros(npx)
-        F = np.zeros((npx, C))
-        N = np.zeros((npx, 3))
-        medi = np.full(npx, -1, np.int32)
-        done = np.zeros(npx, np.bool_)
-        fs = np.empty(C)
-        n_done = 0
-        start = tile_start[t]
-        r = rec_tile_start[t]
-        for j in range(start, tile_start[t + 1]):
-            rec_start[j] = r
-            rec_count[j] = 0
-        for j in range(start, tile_start[t + 1]):
-            if n_done == npx:
-                break
-            rec_start[j] = r
-            s = tile_list[j]
-            ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
-            ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
-            a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
-            det, cx, cy = geo[s, GEO_DET], geo[s, GEO_CX], geo[s, GEO_CY]
-            rho_max, o = geo[s, GEO_RHO_MAX], geo[s, GEO_OPACITY]
-            inv_det, inv_zc = geo[s, GEO_INV_DET], geo[s, GEO_INV_ZC]
-            zc = float(Tm[s, 8])
-            for c in range(C):
-                fs[c] = feat[s, c]
-            n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
-            for py in range(max(box[s, 2], y0), min(box[s, 3], y1 - 1) + 1):
-                y = float(py)
-                dy = y - cy
-                dy2 = dy * dy
-                qr0 = y * ay0 + a00
-                qr1 = y * ay1 + a01
-                qr2 = y * ay2 + a02
-                row = (py - y0) * tw - x0
-                xa, xb = _row_span(max(box[s, 0], x0), min(box[s, 1], x1 - 1), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max)
-                for px in range(xa, xb + 1):
-                    p = row + px
-                    if done[p]:
-                        continue
-                    ok, a, a_raw, G, z, iz, use3, u, v, inv = _pair(
-                        float(px), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o
-                    )
-                    if not ok:
-                        continue
-                    T = Tr[p]
-                    T_next = T * (1.0 - a)
-                    if T_next < T_MIN:
-                        done[p] = True
-                        n_done += 1
-                        continue
-                    w = a * T
-                    for c in range(C):
-                        F[p, c] += w * fs[c]
-                    N[p, 0] += w * n0
-                    N[p, 1] += w * n1
-                    N[p, 2] += w * n2
-                    D[p] += w * z
-                    m = mscale * (1.0 - near * iz)
-                    Ws[p] += w
-                    M1[p] += w * m
-                    M2[p] += w * m * m
-                    if T > 0.5:
-                        med[p] = z
-                        medi[p] = j - start
-                    Tr[p] = T_next
-                    flags = (px - x0) + (py - y0) * tw + (256 if use3 else 0) + (512 if a_raw >= ALPHA_MAX else 0)
-                    rec[r, R_FLAGS] = flags
-                    rec[r, R_T] = T
-                    rec[r, R_A] = a
-                    rec[r, R_Z] = z
-                    if use3:  # unused by the low-pass branch
-                        rec[r, R_U] = u
-                        rec[r, R_V] = v
-                        rec[r, R_INV] = inv
-                    r += 1
-            rec_count[j] = r - rec_start[j]
-        for py in range(y0, y1):
-            for px in range(x0, x1):
-                p = (py - y0) * tw + px - x0
+    for wk in prange(worker_start.shape[0] - 1):
+        for it in range(worker_start[wk], worker_start[wk + 1]):
+            t = worker_tiles[it]
+            x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
+            tw = x1 - x0
+            npx = tw * (y1 - y0)
+            Tr = np.ones(npx)
+            Ws = np.zeros(npx)
+            M1 = np.zeros(npx)
+            M2 = np.zeros(npx)
+            D = np.zeros(npx)
+            med = np.zeros(npx)
+            F = np.zeros((npx, C))
+            N = np.zeros((npx, 3))
+            medi = np.full(npx, -1, np.int32)
+            done = np.zeros(npx, np.bool_)
+            fs = np.empty(C)
+            n_done = 0
+            start = tile_start[t]
+            r = rec_tile_start[t]
+            for j in range(start, tile_start[t + 1]):
+                rec_start[j] = r
+                rec_count[j] = 0
+            for j in range(start, tile_start[t + 1]):
+                if n_done == npx:
+                    break
+                rec_start[j] = r
+                s = tile_list[j]
+                ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
+                ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
+                a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
+                det, cx, cy = geo[s, GEO_DET], geo[s, GEO_CX], geo[s, GEO_CY]
+                rho_max, o = geo[s, GEO_RHO_MAX], geo[s, GEO_OPACITY]
+                inv_det, inv_zc = geo[s, GEO_INV_DET], geo[s, GEO_INV_ZC]
+                zc = float(Tm[s, 8])
                 for c in range(C):
-                    out_feat[py, px, c] = F[p, c]
-                for r in range(3):
-                    out_ncam[py, px, r] = N[p, r]
-                    # n_world = R_wc^T n_cam
-                    out_nworld[py, px, r] = Rwc[0, r] * N[p, 0] + Rwc[1, r] * N[p, 1] + Rwc[2, r] * N[p, 2]
-                A = 1.0 - Tr[p]
-                out_alpha[py, px] = A
-                out_depth[py, px] = D[p] / (A + depth_eps)
-                out_med[py, px] = med[p]
-                # sum_{i>j} w_i w_j (m_i - m_j)^2 == W M2 - M1^2 (exact identity, float64).
-                out_dist[py, px] = max(Ws[p] * M2[p] - M1[p] * M1[p], 0.0)
-                aux_T[py, px] = Tr[p]
-                aux_D[py, px] = D[p]
-                aux_W[py, px] = Ws[p]
-                aux_M1[py, px] = M1[p]
-                aux_M2[py, px] = M2[p]
-                med_local[py, px] = medi[p]
+                    fs[c] = feat[s, c]
+                n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
+                for py in range(max(box[s, 2], y0), min(box[s, 3], y1 - 1) + 1):
+                    y = float(py)
+                    dy = y - cy
+                    dy2 = dy * dy
+                    qr0 = y * ay0 + a00
+                    qr1 = y * ay1 + a01
+                    qr2 = y * ay2 + a02
+                    row = (py - y0) * tw - x0
+                    xa, xb = _row_span(max(box[s, 0], x0), min(box[s, 1], x1 - 1), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max)
+                    for px in range(xa, xb + 1):
+                        p = row + px
+                        if done[p]:
+                            continue
+                        ok, a, a_raw, G, z, iz, use3, u, v, inv = _pair(
+                            float(px), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o
+                        )
+                        if not ok:
+                            continue
+                        T = Tr[p]
+                        T_next = T * (1.0 - a)
+                        if T_next < T_MIN:
+                            done[p] = True
+                            n_done += 1
+                            continue
+                        w = a * T
+                        for c in range(C):
+                            F[p, c] += w * fs[c]
+                        N[p, 0] += w * n0
+                        N[p, 1] += w * n1
+                        N[p, 2] += w * n2
+                        D[p] += w * z
+                        m = mscale * (1.0 - near * iz)
+                        Ws[p] += w
+                        M1[p] += w * m
+                        M2[p] += w * m * m
+                        if T > 0.5:
+                            med[p] = z
+                            medi[p] = j - start
+                        Tr[p] = T_next
+                        flags = (px - x0) + (py - y0) * tw + (256 if use3 else 0) + (512 if a_raw >= ALPHA_MAX else 0)
+                        rec[r, R_FLAGS] = flags
+                        rec[r, R_T] = T
+                        rec[r, R_A] = a
+                        rec[r, R_Z] = z
+                        if use3:  # unused by the low-pass branch
+                            rec[r, R_U] = u
+                            rec[r, R_V] = v
+                            rec[r, R_INV] = inv
+                        r += 1
+                rec_count[j] = r - rec_start[j]
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    p = (py - y0) * tw + px - x0
+                    for c in range(C):
+                        out_feat[py, px, c] = F[p, c]
+                    for r in range(3):
+                        out_ncam[py, px, r] = N[p, r]
+                        # n_world = R_wc^T n_cam
+                        out_nworld[py, px, r] = Rwc[0, r] * N[p, 0] + Rwc[1, r] * N[p, 1] + Rwc[2, r] * N[p, 2]
+                    A = 1.0 - Tr[p]
+                    out_alpha[py, px] = A
+                    out_depth[py, px] = D[p] / (A + depth_eps)
+                    out_med[py, px] = med[p]
+                    # sum_{i>j} w_i w_j (m_i - m_j)^2 == W M2 - M1^2 (exact identity, float64).
+                    out_dist[py, px] = max(Ws[p] * M2[p] - M1[p] * M1[p], 0.0)
+                    aux_T[py, px] = Tr[p]
+                    aux_D[py, px] = D[p]
+                    aux_W[py, px] = Ws[p]
+                    aux_M1[py, px] = M1[p]
+                    aux_M2[py, px] = M2[p]
+                    med_local[py, px] = medi[p]
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def backward(
-    tile_start, tile_list, tile_order, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    tile_start, tile_list, worker_start, worker_tiles, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
     aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec, rec_start, rec_count,
     g_feat, g_alpha, g_depth, g_med, g_ncam, g_nworld, g_dist, slots,
 ):  # fmt: skip
@@ -454,107 +486,108 @@ def backward(
     height = aux_T.shape[0]
     C = feat.shape[1]
     mscale = far / (far - near)
-    for it in prange(tile_order.shape[0]):
-        t = tile_order[it]
-        x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
-        tw = x1 - x0
-        npx = tw * (y1 - y0)
-        S = np.zeros(npx)
-        gA = np.empty(npx)
-        gD = np.empty(npx)
-        gN = np.empty((npx, 3))
-        for py in range(y0, y1):
-            for px in range(x0, x1):
-                p = (py - y0) * tw + px - x0
-                inv = 1.0 / (1.0 - aux_T[py, px] + depth_eps)
-                ge = float(g_depth[py, px])
-                gD[p] = ge * inv
-                gA[p] = float(g_alpha[py, px]) - ge * aux_D[py, px] * inv * inv
-                for k in range(3):
-                    gN[p, k] = float(g_ncam[py, px, k]) + (
-                        Rwc[k, 0] * g_nworld[py, px, 0] + Rwc[k, 1] * g_nworld[py, px, 1] + Rwc[k, 2] * g_nworld[py, px, 2]
-                    )
-        start = tile_start[t]
-        gfe = np.empty(C)
-        fs = np.empty(C)
-        for j in range(tile_start[t + 1] - 1, start - 1, -1):
-            li = j - start
-            s = tile_list[j]
-            # Scalar accumulators stay in registers (see S_* for their meaning).
-            gax0 = gax1 = gax2 = gay0 = gay1 = gay2 = g00 = g01 = g02 = 0.0
-            gdet = gcx = gcy = gtw2 = gop = gn_0 = gn_1 = gn_2 = 0.0
-            gfe[:] = 0.0
-            cx, cy, o = geo[s, GEO_CX], geo[s, GEO_CY], geo[s, GEO_OPACITY]
-            for c in range(C):
-                fs[c] = feat[s, c]
-            n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
-            for r in range(rec_start[j], rec_start[j] + rec_count[j]):
-                flags = int(rec[r, R_FLAGS])
-                p = flags & 255
-                dpy = p // tw
-                px = x0 + p - dpy * tw
-                py = y0 + dpy
-                x = float(px)
-                y = float(py)
-                T = float(rec[r, R_T])
-                a = float(rec[r, R_A])
-                z = float(rec[r, R_Z])
-                iz = 1.0 / z
-                w = a * T
-                m = mscale * (1.0 - near * iz)
-                Wt = aux_W[py, px]
-                M1t = aux_M1[py, px]
-                gd = float(g_dist[py, px])
-                gq0, gq1, gq2 = gN[p, 0], gN[p, 1], gN[p, 2]
-                vsum = gA[p] + gD[p] * z + gq0 * n0 + gq1 * n1 + gq2 * n2
-                vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
+    for wk in prange(worker_start.shape[0] - 1):
+        for it in range(worker_start[wk], worker_start[wk + 1]):
+            t = worker_tiles[it]
+            x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
+            tw = x1 - x0
+            npx = tw * (y1 - y0)
+            S = np.zeros(npx)
+            gA = np.empty(npx)
+            gD = np.empty(npx)
+            gN = np.empty((npx, 3))
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    p = (py - y0) * tw + px - x0
+                    inv = 1.0 / (1.0 - aux_T[py, px] + depth_eps)
+                    ge = float(g_depth[py, px])
+                    gD[p] = ge * inv
+                    gA[p] = float(g_alpha[py, px]) - ge * aux_D[py, px] * inv * inv
+                    for k in range(3):
+                        gN[p, k] = float(g_ncam[py, px, k]) + (
+                            Rwc[k, 0] * g_nworld[py, px, 0] + Rwc[k, 1] * g_nworld[py, px, 1] + Rwc[k, 2] * g_nworld[py, px, 2]
+                        )
+            start = tile_start[t]
+            gfe = np.empty(C)
+            fs = np.empty(C)
+            for j in range(tile_start[t + 1] - 1, start - 1, -1):
+                li = j - start
+                s = tile_list[j]
+                # Scalar accumulators stay in registers (see S_* for their meaning).
+                gax0 = gax1 = gax2 = gay0 = gay1 = gay2 = g00 = g01 = g02 = 0.0
+                gdet = gcx = gcy = gtw2 = gop = gn_0 = gn_1 = gn_2 = 0.0
+                gfe[:] = 0.0
+                cx, cy, o = geo[s, GEO_CX], geo[s, GEO_CY], geo[s, GEO_OPACITY]
                 for c in range(C):
-                    gf = float(g_feat[py, px, c])
-                    vsum += gf * fs[c]
-                    gfe[c] += gf * w
-                gn_0 += gq0 * w
-                gn_1 += gq1 * w
-                gn_2 += gq2 * w
-                dL_da = T * vsum - S[p] / (1.0 - a)
-                S[p] += w * vsum
-                dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
-                if med_local[py, px] == li:
-                    dz += float(g_med[py, px])
-                drho = 0.0
-                if not (flags & 512):  # the cap alpha = 0.99 has zero derivative
-                    gop += dL_da * a / o  # dalpha/do = G = alpha / o
-                    drho = -0.5 * a * dL_da
-                if flags & 256:
-                    # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
-                    u = float(rec[r, R_U])
-                    v = float(rec[r, R_V])
-                    inv = float(rec[r, R_INV])
-                    dq0 = 2.0 * drho * u * inv
-                    dq1 = 2.0 * drho * v * inv
-                    dq2 = -(2.0 * drho * (u * u + v * v) + dz * z) * inv
-                    gax0 += x * dq0
-                    gax1 += x * dq1
-                    gax2 += x * dq2
-                    gay0 += y * dq0
-                    gay1 += y * dq1
-                    gay2 += y * dq2
-                    g00 += dq0
-                    g01 += dq1
-                    g02 += dq2
-                    gdet += dz * inv
-                else:
-                    # rho2 = 2 |(x, y) - c|^2, z = centre depth T_w2.
-                    gcx -= 4.0 * (x - cx) * drho
-                    gcy -= 4.0 * (y - cy) * drho
-                    gtw2 += dz
-            slots[j, S_AX], slots[j, S_AX + 1], slots[j, S_AX + 2] = gax0, gax1, gax2
-            slots[j, S_AY], slots[j, S_AY + 1], slots[j, S_AY + 2] = gay0, gay1, gay2
-            slots[j, S_A0], slots[j, S_A0 + 1], slots[j, S_A0 + 2] = g00, g01, g02
-            slots[j, S_DET], slots[j, S_CX], slots[j, S_CY], slots[j, S_TW2] = gdet, gcx, gcy, gtw2
-            slots[j, S_OPACITY] = gop
-            slots[j, S_NORMAL], slots[j, S_NORMAL + 1], slots[j, S_NORMAL + 2] = gn_0, gn_1, gn_2
-            for c in range(C):
-                slots[j, S_FEATURE + c] = gfe[c]
+                    fs[c] = feat[s, c]
+                n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
+                for r in range(rec_start[j], rec_start[j] + rec_count[j]):
+                    flags = int(rec[r, R_FLAGS])
+                    p = flags & 255
+                    dpy = p // tw
+                    px = x0 + p - dpy * tw
+                    py = y0 + dpy
+                    x = float(px)
+                    y = float(py)
+                    T = float(rec[r, R_T])
+                    a = float(rec[r, R_A])
+                    z = float(rec[r, R_Z])
+                    iz = 1.0 / z
+                    w = a * T
+                    m = mscale * (1.0 - near * iz)
+                    Wt = aux_W[py, px]
+                    M1t = aux_M1[py, px]
+                    gd = float(g_dist[py, px])
+                    gq0, gq1, gq2 = gN[p, 0], gN[p, 1], gN[p, 2]
+                    vsum = gA[p] + gD[p] * z + gq0 * n0 + gq1 * n1 + gq2 * n2
+                    vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
+                    for c in range(C):
+                        gf = float(g_feat[py, px, c])
+                        vsum += gf * fs[c]
+                        gfe[c] += gf * w
+                    gn_0 += gq0 * w
+                    gn_1 += gq1 * w
+                    gn_2 += gq2 * w
+                    dL_da = T * vsum - S[p] / (1.0 - a)
+                    S[p] += w * vsum
+                    dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
+                    if med_local[py, px] == li:
+                        dz += float(g_med[py, px])
+                    drho = 0.0
+                    if not (flags & 512):  # the cap alpha = 0.99 has zero derivative
+                        gop += dL_da * a / o  # dalpha/do = G = alpha / o
+                        drho = -0.5 * a * dL_da
+                    if flags & 256:
+                        # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
+                        u = float(rec[r, R_U])
+                        v = float(rec[r, R_V])
+                        inv = float(rec[r, R_INV])
+                        dq0 = 2.0 * drho * u * inv
+                        dq1 = 2.0 * drho * v * inv
+                        dq2 = -(2.0 * drho * (u * u + v * v) + dz * z) * inv
+                        gax0 += x * dq0
+                        gax1 += x * dq1
+                        gax2 += x * dq2
+                        gay0 += y * dq0
+                        gay1 += y * dq1
+                        gay2 += y * dq2
+                        g00 += dq0
+                        g01 += dq1
+                        g02 += dq2
+                        gdet += dz * inv
+                    else:
+                        # rho2 = 2 |(x, y) - c|^2, z = centre depth T_w2.
+                        gcx -= 4.0 * (x - cx) * drho
+                        gcy -= 4.0 * (y - cy) * drho
+                        gtw2 += dz
+                slots[j, S_AX], slots[j, S_AX + 1], slots[j, S_AX + 2] = gax0, gax1, gax2
+                slots[j, S_AY], slots[j, S_AY + 1], slots[j, S_AY + 2] = gay0, gay1, gay2
+                slots[j, S_A0], slots[j, S_A0 + 1], slots[j, S_A0 + 2] = g00, g01, g02
+                slots[j, S_DET], slots[j, S_CX], slots[j, S_CY], slots[j, S_TW2] = gdet, gcx, gcy, gtw2
+                slots[j, S_OPACITY] = gop
+                slots[j, S_NORMAL], slots[j, S_NORMAL + 1], slots[j, S_NORMAL + 2] = gn_0, gn_1, gn_2
+                for c in range(C):
+                    slots[j, S_FEATURE + c] = gfe[c]
 
 
 @njit(inline="always")

@@ -26,6 +26,7 @@ from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer.types import Camera
 
 _compile_seconds: float | None = None
+_ENTRY_COST = 8.0  # pixel-pair equivalents of one (tile, surfel) entry's set-up
 
 
 @dataclass
@@ -43,7 +44,8 @@ class Geometry:
     emit_start: np.ndarray
     slot_of_emit: np.ndarray
     rec_tile_start: np.ndarray  # each tile's region of the pair-record buffer
-    tile_order: np.ndarray  # tiles by decreasing pair count (load balance)
+    worker_start: np.ndarray  # tiles per thread, balanced by their pixel-surfel pairs
+    worker_tiles: np.ndarray
     n_tx: int
 
     @property
@@ -88,10 +90,13 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
     tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start = K.bin_tiles(order, box, n_tx, n_ty)
-    tile_order = np.argsort(-np.diff(tile_start), kind="stable")
+    # Cost of a tile ~ its pixel-surfel pairs plus a per-surfel set-up.
+    cost = np.diff(rec_tile_start).astype(np.float64) + _ENTRY_COST * np.diff(tile_start)
+    worker_start, worker_tiles = K.schedule_tiles(cost, numba.get_num_threads())
     return Geometry(
-        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start, tile_order, n_tx
-    )
+        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start,
+        worker_start, worker_tiles, n_tx,
+    )  # fmt: skip
 
 
 class _Rasterize(torch.autograd.Function):
@@ -112,7 +117,7 @@ class _Rasterize(torch.autograd.Function):
         rec_count = np.empty(geom.num_pairs, np.int64)
         with numba.parallel_chunksize(1):
             K.forward(
-                geom.tile_start, geom.tile_list, geom.tile_order, geom.box, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
+                geom.tile_start, geom.tile_list, geom.worker_start, geom.worker_tiles, geom.box, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
                 W, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, med_local, geom.rec_tile_start,
                 rec, rec_start, rec_count,
             )  # fmt: skip
@@ -130,7 +135,7 @@ class _Rasterize(torch.autograd.Function):
         slots = np.empty((geom.num_pairs, K.S_FIXED + C), np.float64)
         with numba.parallel_chunksize(1):
             K.backward(
-                geom.tile_start, geom.tile_list, geom.tile_order, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
+                geom.tile_start, geom.tile_list, geom.worker_start, geom.worker_tiles, geom.geo, geom.Tm, geom.nrm, feat, Rwc,
                 camera.width, geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec, rec_start,
                 rec_count, *(_np(g) for g in grads), slots,
             )  # fmt: skip
