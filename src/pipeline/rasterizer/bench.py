@@ -9,7 +9,8 @@ backend and case) and ``rasterizer.md`` (a table with the cpu/reference speed ra
 scene defines, identical for both backends); ``pairs_per_s = pairs / (forward_s +
 backward_s)``. ``peak_mb`` is the peak resident memory above the level before the case
 (sampled every 2 ms, after returning freed heap pages to the OS), i.e. the extra memory
-of one forward + backward.
+of one forward + backward, starting with no pooled scratch buffers (``cpu.SCRATCH``); the
+timed runs that follow reuse the pool, as a training loop does.
 """
 from __future__ import annotations
 
@@ -170,6 +171,7 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
         repeats = 1
     load_before = os.getloadavg()[0]
     fwd, bwd = [], []
+    cpu_backend.SCRATCH.clear()  # the peak includes the cpu backend's scratch buffers
     with _PeakRSS() as mem:
         f, b = _time_once(s, cam, backend, cot)
     peak = mem.mb
