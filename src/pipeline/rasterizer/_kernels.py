@@ -41,6 +41,7 @@ from numba import njit, prange
 from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, T_MIN, UV_MAX
 
 TILE = 16
+_CHUNK = 256  # surfels per prange iteration of the per-surfel kernels (scratch arrays allocated once)
 
 # Per-surfel geometry (float64) computed by ``preprocess``.
 GEO_AX = 0  # 3: T_v x T_w  (q = x AX + y AY + A0)
@@ -94,130 +95,146 @@ def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far
     ``depth`` (centre z), ``box`` (P, 4) support box and ``radii`` (0 = not visible)."""
     fx, sk, cx0, fy, cy0 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     big = 4.0 * max(width, height)
-    for i in prange(means.shape[0]):
-        w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
-        inv = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
-        w, x, y, z = w * inv, x * inv, y * inv, z * inv
+    for chunk in prange(-(-means.shape[0] // _CHUNK)):
         R = np.empty((3, 3))
-        R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-        R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-        R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
         M = np.empty((3, 3))  # camera-frame columns s_u t_u, s_v t_v, p_c
         n = np.empty(3)
-        for r in range(3):
-            M[r, 0] = float(scales[i, 0]) * (Rwc[r, 0] * R[0, 0] + Rwc[r, 1] * R[1, 0] + Rwc[r, 2] * R[2, 0])
-            M[r, 1] = float(scales[i, 1]) * (Rwc[r, 0] * R[0, 1] + Rwc[r, 1] * R[1, 1] + Rwc[r, 2] * R[2, 1])
-            M[r, 2] = Rwc[r, 0] * means[i, 0] + Rwc[r, 1] * means[i, 1] + Rwc[r, 2] * means[i, 2] + twc[r]
-            n[r] = Rwc[r, 0] * R[0, 2] + Rwc[r, 1] * R[1, 2] + Rwc[r, 2] * R[2, 2]
-        # Face the camera: n <- -sign(n . p_c) n (dropped when the plane contains the eye).
-        d = n[0] * M[0, 2] + n[1] * M[1, 2] + n[2] * M[2, 2]
-        sgn = -1.0 if d > 0 else (1.0 if d < 0 else 0.0)
-        for r in range(3):
-            nrm[i, r] = sgn * n[r]
         T = np.empty((3, 3))
-        for c in range(3):
-            T[0, c] = fx * M[0, c] + sk * M[1, c] + cx0 * M[2, c]
-            T[1, c] = fy * M[1, c] + cy0 * M[2, c]
-            T[2, c] = M[2, c]
-        for r in range(3):
+        for i in range(chunk * _CHUNK, min(means.shape[0], (chunk + 1) * _CHUNK)):
+            w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
+            inv = 1.0 / math.sqrt(w * w + x * x + y * y + z * z)
+            w, x, y, z = w * inv, x * inv, y * inv, z * inv
+            R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+            R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+            R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+            for r in range(3):
+                M[r, 0] = float(scales[i, 0]) * (Rwc[r, 0] * R[0, 0] + Rwc[r, 1] * R[1, 0] + Rwc[r, 2] * R[2, 0])
+                M[r, 1] = float(scales[i, 1]) * (Rwc[r, 0] * R[0, 1] + Rwc[r, 1] * R[1, 1] + Rwc[r, 2] * R[2, 1])
+                M[r, 2] = Rwc[r, 0] * means[i, 0] + Rwc[r, 1] * means[i, 1] + Rwc[r, 2] * means[i, 2] + twc[r]
+                n[r] = Rwc[r, 0] * R[0, 2] + Rwc[r, 1] * R[1, 2] + Rwc[r, 2] * R[2, 2]
+            # Face the camera: n <- -sign(n . p_c) n (dropped when the plane contains the eye).
+            d = n[0] * M[0, 2] + n[1] * M[1, 2] + n[2] * M[2, 2]
+            sgn = -1.0 if d > 0 else (1.0 if d < 0 else 0.0)
+            for r in range(3):
+                nrm[i, r] = sgn * n[r]
             for c in range(3):
-                Tm[i, 3 * r + c] = T[r, c]
-        # Round to the storage dtype so the geometry matches what the backward sees.
-        for r in range(3):
+                T[0, c] = fx * M[0, c] + sk * M[1, c] + cx0 * M[2, c]
+                T[1, c] = fy * M[1, c] + cy0 * M[2, c]
+                T[2, c] = M[2, c]
+            for r in range(3):
+                for c in range(3):
+                    Tm[i, 3 * r + c] = T[r, c]
+            # Round to the storage dtype so the geometry matches what the backward sees.
+            for r in range(3):
+                for c in range(3):
+                    T[r, c] = float(Tm[i, 3 * r + c])
+            ax = _cross(T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
+            ay = _cross(T[2, 0], T[2, 1], T[2, 2], T[0, 0], T[0, 1], T[0, 2])
+            a0 = _cross(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2])
+            zc = T[2, 2]
+            depth[i] = zc
+            o = float(opac[i])
+            rho_cut = 2.0 * math.log(255.0 * o) if o > 0 else -1.0
             for c in range(3):
-                T[r, c] = float(Tm[i, 3 * r + c])
-        ax = _cross(T[1, 0], T[1, 1], T[1, 2], T[2, 0], T[2, 1], T[2, 2])
-        ay = _cross(T[2, 0], T[2, 1], T[2, 2], T[0, 0], T[0, 1], T[0, 2])
-        a0 = _cross(T[0, 0], T[0, 1], T[0, 2], T[1, 0], T[1, 1], T[1, 2])
-        zc = T[2, 2]
-        depth[i] = zc
-        o = float(opac[i])
-        rho_cut = 2.0 * math.log(255.0 * o) if o > 0 else -1.0
-        for c in range(3):
-            geo[i, GEO_AX + c] = ax[c]
-            geo[i, GEO_AY + c] = ay[c]
-            geo[i, GEO_A0 + c] = a0[c]
-        det = T[2, 0] * a0[0] + T[2, 1] * a0[1] + T[2, 2] * a0[2]
-        geo[i, GEO_DET] = det
-        geo[i, GEO_INV_DET] = 1.0 / det if det != 0.0 else 0.0  # unused when det == 0 (z = 0 < near)
-        geo[i, GEO_INV_ZC] = 1.0 / zc if zc != 0.0 else 0.0
-        geo[i, GEO_RHO_MAX] = rho_cut * (1.0 + _RHO_SLACK) + _RHO_SLACK
-        geo[i, GEO_OPACITY] = o
-        radii[i] = 0
-        box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, -1, 0, -1
-        if not (zc >= near and zc <= far and rho_cut >= 0.0):
-            geo[i, GEO_CX] = 0.0
-            geo[i, GEO_CY] = 0.0
-            continue
-        pcx, pcy = T[0, 2] / zc, T[1, 2] / zc
-        geo[i, GEO_CX] = pcx
-        geo[i, GEO_CY] = pcy
-        # Support box: image of the disc u^2 + v^2 <= rho_cut through the dual conic
-        # T diag(r2, r2, -1) T^T (bounded iff its (2,2) entry < 0), union the low-pass
-        # square; see project.support_boxes (the torch twin used by the reference).
-        r2 = rho_cut
-        c22 = r2 * (T[2, 0] ** 2 + T[2, 1] ** 2) - T[2, 2] ** 2
-        d2 = math.sqrt(r2 / 2.0)
-        lo_x, hi_x, lo_y, hi_y = -big, big, -big, big
-        if c22 < 0:
-            c02 = r2 * (T[0, 0] * T[2, 0] + T[0, 1] * T[2, 1]) - T[0, 2] * T[2, 2]
-            c12 = r2 * (T[1, 0] * T[2, 0] + T[1, 1] * T[2, 1]) - T[1, 2] * T[2, 2]
-            c00 = r2 * (T[0, 0] ** 2 + T[0, 1] ** 2) - T[0, 2] ** 2
-            c11 = r2 * (T[1, 0] ** 2 + T[1, 1] ** 2) - T[1, 2] ** 2
-            xc, yc = c02 / c22, c12 / c22
-            hx = math.sqrt(max(xc * xc - c00 / c22, 0.0))
-            hy = math.sqrt(max(yc * yc - c11 / c22, 0.0))
-            lo_x, hi_x = min(xc - hx, pcx - d2), max(xc + hx, pcx + d2)
-            lo_y, hi_y = min(yc - hy, pcy - d2), max(yc + hy, pcy + d2)
-            if not (math.isfinite(lo_x) and math.isfinite(hi_x) and math.isfinite(lo_y) and math.isfinite(hi_y)):
-                lo_x, hi_x, lo_y, hi_y = -big, big, -big, big
-        rad = max(max(hi_x - pcx, pcx - lo_x), max(hi_y - pcy, pcy - lo_y))
-        xmin = max(int(math.ceil(max(lo_x - 0.5, -1.0))), 0)
-        xmax = min(int(math.floor(min(hi_x + 0.5, float(width)))), width - 1)
-        ymin = max(int(math.ceil(max(lo_y - 0.5, -1.0))), 0)
-        ymax = min(int(math.floor(min(hi_y + 0.5, float(height)))), height - 1)
-        if xmin <= xmax and ymin <= ymax:
-            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = xmin, xmax, ymin, ymax
-            radii[i] = max(1, int(math.ceil(min(max(rad, 0.0), big))))
+                geo[i, GEO_AX + c] = ax[c]
+                geo[i, GEO_AY + c] = ay[c]
+                geo[i, GEO_A0 + c] = a0[c]
+            det = T[2, 0] * a0[0] + T[2, 1] * a0[1] + T[2, 2] * a0[2]
+            geo[i, GEO_DET] = det
+            geo[i, GEO_INV_DET] = 1.0 / det if det != 0.0 else 0.0  # unused when det == 0 (z = 0 < near)
+            geo[i, GEO_INV_ZC] = 1.0 / zc if zc != 0.0 else 0.0
+            geo[i, GEO_RHO_MAX] = rho_cut * (1.0 + _RHO_SLACK) + _RHO_SLACK
+            geo[i, GEO_OPACITY] = o
+            radii[i] = 0
+            box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, -1, 0, -1
+            if not (zc >= near and zc <= far and rho_cut >= 0.0):
+                geo[i, GEO_CX] = 0.0
+                geo[i, GEO_CY] = 0.0
+                continue
+            pcx, pcy = T[0, 2] / zc, T[1, 2] / zc
+            geo[i, GEO_CX] = pcx
+            geo[i, GEO_CY] = pcy
+            # Support box: image of the disc u^2 + v^2 <= rho_cut through the dual conic
+            # T diag(r2, r2, -1) T^T (bounded iff its (2,2) entry < 0), union the low-pass
+            # square; see project.support_boxes (the torch twin used by the reference).
+            r2 = rho_cut
+            c22 = r2 * (T[2, 0] ** 2 + T[2, 1] ** 2) - T[2, 2] ** 2
+            d2 = math.sqrt(r2 / 2.0)
+            lo_x, hi_x, lo_y, hi_y = -big, big, -big, big
+            if c22 < 0:
+                c02 = r2 * (T[0, 0] * T[2, 0] + T[0, 1] * T[2, 1]) - T[0, 2] * T[2, 2]
+                c12 = r2 * (T[1, 0] * T[2, 0] + T[1, 1] * T[2, 1]) - T[1, 2] * T[2, 2]
+                c00 = r2 * (T[0, 0] ** 2 + T[0, 1] ** 2) - T[0, 2] ** 2
+                c11 = r2 * (T[1, 0] ** 2 + T[1, 1] ** 2) - T[1, 2] ** 2
+                xc, yc = c02 / c22, c12 / c22
+                hx = math.sqrt(max(xc * xc - c00 / c22, 0.0))
+                hy = math.sqrt(max(yc * yc - c11 / c22, 0.0))
+                lo_x, hi_x = min(xc - hx, pcx - d2), max(xc + hx, pcx + d2)
+                lo_y, hi_y = min(yc - hy, pcy - d2), max(yc + hy, pcy + d2)
+                if not (math.isfinite(lo_x) and math.isfinite(hi_x) and math.isfinite(lo_y) and math.isfinite(hi_y)):
+                    lo_x, hi_x, lo_y, hi_y = -big, big, -big, big
+            rad = max(max(hi_x - pcx, pcx - lo_x), max(hi_y - pcy, pcy - lo_y))
+            xmin = max(int(math.ceil(max(lo_x - 0.5, -1.0))), 0)
+            xmax = min(int(math.floor(min(hi_x + 0.5, float(width)))), width - 1)
+            ymin = max(int(math.ceil(max(lo_y - 0.5, -1.0))), 0)
+            ymax = min(int(math.floor(min(hi_y + 0.5, float(height)))), height - 1)
+            if xmin <= xmax and ymin <= ymax:
+                box[i, 0], box[i, 1], box[i, 2], box[i, 3] = xmin, xmax, ymin, ymax
+                radii[i] = max(1, int(math.ceil(min(max(rad, 0.0), big))))
 
 
-@njit(cache=True, error_model="numpy")
-def bin_tiles(order, box, n_tx, n_ty):
-    """Sort (tile, surfel) pairs by tile, keeping the depth order inside each tile.
+@njit(parallel=True, cache=True, error_model="numpy")
+def bin_tiles(visible, depth, box, n_tx, n_ty):
+    """List every visible surfel in the tiles its box touches, front to back per tile.
 
-    ``order``: visible surfel ids front to back. Returns ``tile_start (n_tiles + 1)``,
-    ``tile_list (n_pairs)`` surfel ids, ``emit_start (P + 1)`` and ``slot_of_emit``:
-    surfel ``s``'s pairs, in its own row-major tile order, sit at list positions
-    ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``; and ``rec_tile_start``, each tile's
-    region in the pair-record buffer (its boxes' pixel count: an upper bound).
+    ``visible``: the drawn surfel ids, increasing; ``depth``: centre depths. Within a
+    tile the list is sorted by ``(depth, id)`` (a stable sort of the id-ordered list,
+    one tile per thread). Returns ``tile_start (n_tiles + 1)``, ``tile_list (n_pairs)``
+    surfel ids, ``emit_start (P + 1)`` and ``slot_of_emit``: surfel ``s``'s pairs, in
+    its own row-major tile order, sit at list positions
+    ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``; and ``rec_tile_start``, each
+    tile's region in the pair-record buffer (its boxes' pixel count: an upper bound).
     """
     P = box.shape[0]
+    n_tiles = n_tx * n_ty
     per_surfel = np.zeros(P + 1, np.int64)
-    counts = np.zeros(n_tx * n_ty + 1, np.int64)
-    for s in order:
-        tx0, tx1 = box[s, 0] // TILE, box[s, 1] // TILE
-        ty0, ty1 = box[s, 2] // TILE, box[s, 3] // TILE
-        per_surfel[s + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1)
-        for ty in range(ty0, ty1 + 1):
-            for tx in range(tx0, tx1 + 1):
-                counts[ty * n_tx + tx + 1] += 1
+    for k in prange(visible.shape[0]):
+        s = visible[k]
+        per_surfel[s + 1] = (box[s, 1] // TILE - box[s, 0] // TILE + 1) * (box[s, 3] // TILE - box[s, 2] // TILE + 1)
     emit_start = np.cumsum(per_surfel)
+    counts = np.zeros(n_tiles + 1, np.int64)
+    for s in visible:
+        for ty in range(box[s, 2] // TILE, box[s, 3] // TILE + 1):
+            for tx in range(box[s, 0] // TILE, box[s, 1] // TILE + 1):
+                counts[ty * n_tx + tx + 1] += 1
     tile_start = np.cumsum(counts)
     fill = tile_start[:-1].copy()
     tile_list = np.empty(tile_start[-1], np.int32)
-    slot_of_emit = np.empty(tile_start[-1], np.int64)
-    capacity = np.zeros(n_tx * n_ty + 1, np.int64)
-    for s in order:
-        e = emit_start[s]
+    for s in visible:
         for ty in range(box[s, 2] // TILE, box[s, 3] // TILE + 1):
-            rows = min(box[s, 3], ty * TILE + TILE - 1) - max(box[s, 2], ty * TILE) + 1
             for tx in range(box[s, 0] // TILE, box[s, 1] // TILE + 1):
                 t = ty * n_tx + tx
                 tile_list[fill[t]] = s
-                slot_of_emit[e] = fill[t]
                 fill[t] += 1
-                e += 1
-                capacity[t + 1] += rows * (min(box[s, 1], tx * TILE + TILE - 1) - max(box[s, 0], tx * TILE) + 1)
+    slot_of_emit = np.empty(tile_start[-1], np.int64)
+    capacity = np.zeros(n_tiles + 1, np.int64)
+    for t in prange(n_tiles):
+        a, b = tile_start[t], tile_start[t + 1]
+        if b - a > 1:
+            ids = tile_list[a:b].copy()
+            perm = np.argsort(depth[ids], kind="mergesort")  # stable: ties stay in id order
+            for k in range(b - a):
+                tile_list[a + k] = ids[perm[k]]
+        ty = t // n_tx
+        tx = t - ty * n_tx
+        cap = 0
+        for j in range(a, b):
+            s = tile_list[j]
+            tx0, ty0 = box[s, 0] // TILE, box[s, 2] // TILE
+            slot_of_emit[emit_start[s] + (ty - ty0) * (box[s, 1] // TILE - tx0 + 1) + tx - tx0] = j
+            rows = min(box[s, 3], ty * TILE + TILE - 1) - max(box[s, 2], ty * TILE) + 1
+            cap += rows * (min(box[s, 1], tx * TILE + TILE - 1) - max(box[s, 0], tx * TILE) + 1)
+        capacity[t + 1] = cap
     return tile_start, tile_list, emit_start, slot_of_emit, np.cumsum(capacity)
 
 
@@ -634,69 +651,71 @@ def reduce_and_chain(
     ``(dL/dT_u . T_w, dL/dT_v . T_w)``."""
     G = slots.shape[1]
     C = d_feat.shape[1]
-    for i in prange(means.shape[0]):
-        if emit_start[i] == emit_start[i + 1]:
-            continue  # never drawn: all gradients stay zero
+    for chunk in prange(-(-means.shape[0] // _CHUNK)):
         g = np.zeros(G)
-        for e in range(emit_start[i], emit_start[i + 1]):
-            j = slot_of_emit[e]
-            for k in range(G):
-                g[k] += slots[j, k]
         T = np.empty(9)
-        for k in range(9):
-            T[k] = float(Tm[i, k])
         dT = np.empty(9)
-        _slot_to_dT(g, T, dT)
-        d_means2d[i, 0] = dT[0] * T[6] + dT[1] * T[7] + dT[2] * T[8]
-        d_means2d[i, 1] = dT[3] * T[6] + dT[4] * T[7] + dT[5] * T[8]
-        d_opac[i] = g[S_OPACITY]
-        for c in range(C):
-            d_feat[i, c] = g[S_FEATURE + c]
-        # dM = K^T dT (M = [s_u c_0, s_v c_1, p_c] in the camera frame).
         dM = np.empty((3, 3))
-        for c in range(3):
-            dM[0, c] = K[0, 0] * dT[c]
-            dM[1, c] = K[0, 1] * dT[c] + K[1, 1] * dT[3 + c]
-            dM[2, c] = K[0, 2] * dT[c] + K[1, 2] * dT[3 + c] + dT[6 + c]
-        w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
-        qn = math.sqrt(w * w + x * x + y * y + z * z)
-        w, x, y, z = w / qn, x / qn, y / qn, z / qn
         R = np.empty((3, 3))
-        R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
-        R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
-        R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
-        # dL/d(world columns r_k) = R_wc^T dL/d(camera columns).
-        s0, s1 = float(scales[i, 0]), float(scales[i, 1])
-        # The facing sign: n = sign * R_wc r_2, and sign = n . (R_wc r_2).
-        sgn = 0.0
-        for r in range(3):
-            sgn += float(nrm[i, r]) * (Rwc[r, 0] * R[0, 2] + Rwc[r, 1] * R[1, 2] + Rwc[r, 2] * R[2, 2])
-        sgn = 1.0 if sgn > 0.5 else (-1.0 if sgn < -0.5 else 0.0)
         dR = np.empty((3, 3))
-        ds0 = 0.0
-        ds1 = 0.0
-        for r in range(3):
-            dc0 = Rwc[0, r] * dM[0, 0] + Rwc[1, r] * dM[1, 0] + Rwc[2, r] * dM[2, 0]
-            dc1 = Rwc[0, r] * dM[0, 1] + Rwc[1, r] * dM[1, 1] + Rwc[2, r] * dM[2, 1]
-            dn = Rwc[0, r] * g[S_NORMAL] + Rwc[1, r] * g[S_NORMAL + 1] + Rwc[2, r] * g[S_NORMAL + 2]
-            dR[r, 0] = s0 * dc0
-            dR[r, 1] = s1 * dc1
-            dR[r, 2] = sgn * dn
-            ds0 += dc0 * R[r, 0]
-            ds1 += dc1 * R[r, 1]
-            d_means[i, r] = Rwc[0, r] * dM[0, 2] + Rwc[1, r] * dM[1, 2] + Rwc[2, r] * dM[2, 2]
-        d_scales[i, 0] = ds0
-        d_scales[i, 1] = ds1
-        dw = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
-        dx = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2]
-                  + z * dR[2, 0] + w * dR[2, 1] - 2 * x * dR[2, 2])  # fmt: skip
-        dy = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
-                  - w * dR[2, 0] + z * dR[2, 1] - 2 * y * dR[2, 2])  # fmt: skip
-        dz = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
-                  + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])  # fmt: skip
-        # Through q / |q|: (I - q q^T) / |q|.
-        dot = w * dw + x * dx + y * dy + z * dz
-        d_quats[i, 0] = (dw - w * dot) / qn
-        d_quats[i, 1] = (dx - x * dot) / qn
-        d_quats[i, 2] = (dy - y * dot) / qn
-        d_quats[i, 3] = (dz - z * dot) / qn
+        for i in range(chunk * _CHUNK, min(means.shape[0], (chunk + 1) * _CHUNK)):
+            if emit_start[i] == emit_start[i + 1]:
+                continue  # never drawn: all gradients stay zero
+            g[:] = 0.0
+            for e in range(emit_start[i], emit_start[i + 1]):
+                j = slot_of_emit[e]
+                for k in range(G):
+                    g[k] += slots[j, k]
+            for k in range(9):
+                T[k] = float(Tm[i, k])
+            _slot_to_dT(g, T, dT)
+            d_means2d[i, 0] = dT[0] * T[6] + dT[1] * T[7] + dT[2] * T[8]
+            d_means2d[i, 1] = dT[3] * T[6] + dT[4] * T[7] + dT[5] * T[8]
+            d_opac[i] = g[S_OPACITY]
+            for c in range(C):
+                d_feat[i, c] = g[S_FEATURE + c]
+            # dM = K^T dT (M = [s_u c_0, s_v c_1, p_c] in the camera frame).
+            for c in range(3):
+                dM[0, c] = K[0, 0] * dT[c]
+                dM[1, c] = K[0, 1] * dT[c] + K[1, 1] * dT[3 + c]
+                dM[2, c] = K[0, 2] * dT[c] + K[1, 2] * dT[3 + c] + dT[6 + c]
+            w, x, y, z = float(quats[i, 0]), float(quats[i, 1]), float(quats[i, 2]), float(quats[i, 3])
+            qn = math.sqrt(w * w + x * x + y * y + z * z)
+            w, x, y, z = w / qn, x / qn, y / qn, z / qn
+            R[0, 0], R[0, 1], R[0, 2] = 1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)
+            R[1, 0], R[1, 1], R[1, 2] = 2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)
+            R[2, 0], R[2, 1], R[2, 2] = 2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)
+            # dL/d(world columns r_k) = R_wc^T dL/d(camera columns).
+            s0, s1 = float(scales[i, 0]), float(scales[i, 1])
+            # The facing sign: n = sign * R_wc r_2, and sign = n . (R_wc r_2).
+            sgn = 0.0
+            for r in range(3):
+                sgn += float(nrm[i, r]) * (Rwc[r, 0] * R[0, 2] + Rwc[r, 1] * R[1, 2] + Rwc[r, 2] * R[2, 2])
+            sgn = 1.0 if sgn > 0.5 else (-1.0 if sgn < -0.5 else 0.0)
+            ds0 = 0.0
+            ds1 = 0.0
+            for r in range(3):
+                dc0 = Rwc[0, r] * dM[0, 0] + Rwc[1, r] * dM[1, 0] + Rwc[2, r] * dM[2, 0]
+                dc1 = Rwc[0, r] * dM[0, 1] + Rwc[1, r] * dM[1, 1] + Rwc[2, r] * dM[2, 1]
+                dn = Rwc[0, r] * g[S_NORMAL] + Rwc[1, r] * g[S_NORMAL + 1] + Rwc[2, r] * g[S_NORMAL + 2]
+                dR[r, 0] = s0 * dc0
+                dR[r, 1] = s1 * dc1
+                dR[r, 2] = sgn * dn
+                ds0 += dc0 * R[r, 0]
+                ds1 += dc1 * R[r, 1]
+                d_means[i, r] = Rwc[0, r] * dM[0, 2] + Rwc[1, r] * dM[1, 2] + Rwc[2, r] * dM[2, 2]
+            d_scales[i, 0] = ds0
+            d_scales[i, 1] = ds1
+            dw = 2 * (-z * dR[0, 1] + y * dR[0, 2] + z * dR[1, 0] - x * dR[1, 2] - y * dR[2, 0] + x * dR[2, 1])
+            dx = 2 * (y * dR[0, 1] + z * dR[0, 2] + y * dR[1, 0] - 2 * x * dR[1, 1] - w * dR[1, 2]
+                      + z * dR[2, 0] + w * dR[2, 1] - 2 * x * dR[2, 2])  # fmt: skip
+            dy = 2 * (-2 * y * dR[0, 0] + x * dR[0, 1] + w * dR[0, 2] + x * dR[1, 0] + z * dR[1, 2]
+                      - w * dR[2, 0] + z * dR[2, 1] - 2 * y * dR[2, 2])  # fmt: skip
+            dz = 2 * (-2 * z * dR[0, 0] - w * dR[0, 1] + x * dR[0, 2] + w * dR[1, 0] - 2 * z * dR[1, 1]
+                      + y * dR[1, 2] + x * dR[2, 0] + y * dR[2, 1])  # fmt: skip
+            # Through q / |q|: (I - q q^T) / |q|.
+            dot = w * dw + x * dx + y * dy + z * dz
+            d_quats[i, 0] = (dw - w * dot) / qn
+            d_quats[i, 1] = (dx - x * dot) / qn
+            d_quats[i, 2] = (dy - y * dot) / qn
+            d_quats[i, 3] = (dz - z * dot) / qn

@@ -148,11 +148,10 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
         _np(means), _np(quats), _np(scales), _np(opacities), Kc, Rwc, twc, camera.width, camera.height,
         camera.near, camera.far, Tm, nrm, geo, depth, box, radii,
     )  # fmt: skip
-    visible = np.flatnonzero(radii > 0)
-    order = visible[np.argsort(depth[visible], kind="stable")]
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
-    tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start = K.bin_tiles(order, box, n_tx, n_ty)
+    binned = K.bin_tiles(np.flatnonzero(radii > 0), depth, box, n_tx, n_ty)
+    tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start = binned
     # Cost of a tile ~ its pixel-surfel pairs plus a per-surfel set-up.
     cost = np.diff(rec_tile_start).astype(np.float64) + _ENTRY_COST * np.diff(tile_start)
     worker_start, worker_tiles = K.schedule_tiles(cost, numba.get_num_threads())
