@@ -80,6 +80,18 @@ R_V = 5
 R_INV = 6
 R_SIZE = 7
 
+# Per-pixel row of the backward's tile table.
+_PX_GA = 0  # dL/dA with the expected depth folded in
+_PX_GD = 1  # dL/dD = g_depth / (A + eps)
+_PX_GN = 2  # 3: camera-frame normal cotangent with the world normal folded in
+_PX_GDIST = 5
+_PX_W = 6  # g_dist * W, g_dist * M1, g_dist * M2
+_PX_M1 = 7
+_PX_M2 = 8
+_PX_GMED = 9
+_PX_MED = 10  # tile-local list position of the median surfel (-1: none)
+_PX_FEAT = 11  # C
+
 _RHO_SLACK = 1e-6
 
 
@@ -510,20 +522,28 @@ def backward(
             tw = x1 - x0
             npx = tw * (y1 - y0)
             S = np.zeros(npx)
-            gA = np.empty(npx)
-            gD = np.empty(npx)
-            gN = np.empty((npx, 3))
+            # Per-pixel cotangents and totals, one contiguous row per pixel (see _PX_*).
+            px_tab = np.empty((npx, _PX_FEAT + C))
             for py in range(y0, y1):
                 for px in range(x0, x1):
                     p = (py - y0) * tw + px - x0
                     inv = 1.0 / (1.0 - aux_T[py, px] + depth_eps)
                     ge = float(g_depth[py, px])
-                    gD[p] = ge * inv
-                    gA[p] = float(g_alpha[py, px]) - ge * aux_D[py, px] * inv * inv
+                    gd = float(g_dist[py, px])
+                    px_tab[p, _PX_GD] = ge * inv
+                    px_tab[p, _PX_GA] = float(g_alpha[py, px]) - ge * aux_D[py, px] * inv * inv
                     for k in range(3):
-                        gN[p, k] = float(g_ncam[py, px, k]) + (
+                        px_tab[p, _PX_GN + k] = float(g_ncam[py, px, k]) + (
                             Rwc[k, 0] * g_nworld[py, px, 0] + Rwc[k, 1] * g_nworld[py, px, 1] + Rwc[k, 2] * g_nworld[py, px, 2]
                         )
+                    px_tab[p, _PX_GDIST] = gd
+                    px_tab[p, _PX_W] = gd * aux_W[py, px]
+                    px_tab[p, _PX_M1] = gd * aux_M1[py, px]
+                    px_tab[p, _PX_M2] = gd * aux_M2[py, px]
+                    px_tab[p, _PX_GMED] = float(g_med[py, px])
+                    px_tab[p, _PX_MED] = float(med_local[py, px])
+                    for c in range(C):
+                        px_tab[p, _PX_FEAT + c] = float(g_feat[py, px, c])
             start = tile_start[t]
             gfe = np.empty(C)
             fs = np.empty(C)
@@ -534,7 +554,8 @@ def backward(
                 gax0 = gax1 = gax2 = gay0 = gay1 = gay2 = g00 = g01 = g02 = 0.0
                 gdet = gcx = gcy = gtw2 = gop = gn_0 = gn_1 = gn_2 = 0.0
                 gfe[:] = 0.0
-                cx, cy, o = geo[s, GEO_CX], geo[s, GEO_CY], geo[s, GEO_OPACITY]
+                cx, cy = geo[s, GEO_CX], geo[s, GEO_CY]
+                inv_o = 1.0 / geo[s, GEO_OPACITY]
                 for c in range(C):
                     fs[c] = feat[s, c]
                 n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
@@ -552,14 +573,13 @@ def backward(
                     iz = 1.0 / z
                     w = a * T
                     m = mscale * (1.0 - near * iz)
-                    Wt = aux_W[py, px]
-                    M1t = aux_M1[py, px]
-                    gd = float(g_dist[py, px])
-                    gq0, gq1, gq2 = gN[p, 0], gN[p, 1], gN[p, 2]
-                    vsum = gA[p] + gD[p] * z + gq0 * n0 + gq1 * n1 + gq2 * n2
-                    vsum += gd * (m * m * Wt - 2.0 * m * M1t + aux_M2[py, px])
+                    gq0, gq1, gq2 = px_tab[p, _PX_GN], px_tab[p, _PX_GN + 1], px_tab[p, _PX_GN + 2]
+                    gDp = px_tab[p, _PX_GD]
+                    gdW, gdM1 = px_tab[p, _PX_W], px_tab[p, _PX_M1]
+                    vsum = px_tab[p, _PX_GA] + gDp * z + gq0 * n0 + gq1 * n1 + gq2 * n2
+                    vsum += m * m * gdW - 2.0 * m * gdM1 + px_tab[p, _PX_M2]
                     for c in range(C):
-                        gf = float(g_feat[py, px, c])
+                        gf = px_tab[p, _PX_FEAT + c]
                         vsum += gf * fs[c]
                         gfe[c] += gf * w
                     gn_0 += gq0 * w
@@ -567,12 +587,12 @@ def backward(
                     gn_2 += gq2 * w
                     dL_da = T * vsum - S[p] / (1.0 - a)
                     S[p] += w * vsum
-                    dz = gD[p] * w + gd * 2.0 * w * (m * Wt - M1t) * mscale * near * iz * iz
-                    if med_local[py, px] == li:
-                        dz += float(g_med[py, px])
+                    dz = gDp * w + 2.0 * w * (m * gdW - gdM1) * mscale * near * iz * iz
+                    if px_tab[p, _PX_MED] == li:
+                        dz += px_tab[p, _PX_GMED]
                     drho = 0.0
                     if not (flags & 512):  # the cap alpha = 0.99 has zero derivative
-                        gop += dL_da * a / o  # dalpha/do = G = alpha / o
+                        gop += dL_da * a * inv_o  # dalpha/do = G = alpha / o
                         drho = -0.5 * a * dL_da
                     if flags & 256:
                         # rho = (q0^2 + q1^2) / q2^2, z = det / q2.
