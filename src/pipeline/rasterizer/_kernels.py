@@ -84,13 +84,12 @@ R_SIZE = 7
 _PX_GA = 0  # dL/dA with the expected depth folded in
 _PX_GD = 1  # dL/dD = g_depth / (A + eps)
 _PX_GN = 2  # 3: camera-frame normal cotangent with the world normal folded in
-_PX_GDIST = 5
-_PX_W = 6  # g_dist * W, g_dist * M1, g_dist * M2
-_PX_M1 = 7
-_PX_M2 = 8
-_PX_GMED = 9
-_PX_MED = 10  # tile-local list position of the median surfel (-1: none)
-_PX_FEAT = 11  # C
+_PX_W = 5  # g_dist * W, g_dist * M1, g_dist * M2
+_PX_M1 = 6
+_PX_M2 = 7
+_PX_GMED = 8
+_PX_MED = 9  # tile-local list position of the median surfel (-1: none)
+_PX_FEAT = 10  # C: feature cotangents
 
 _RHO_SLACK = 1e-6
 
@@ -536,7 +535,6 @@ def backward(
                         px_tab[p, _PX_GN + k] = float(g_ncam[py, px, k]) + (
                             Rwc[k, 0] * g_nworld[py, px, 0] + Rwc[k, 1] * g_nworld[py, px, 1] + Rwc[k, 2] * g_nworld[py, px, 2]
                         )
-                    px_tab[p, _PX_GDIST] = gd
                     px_tab[p, _PX_W] = gd * aux_W[py, px]
                     px_tab[p, _PX_M1] = gd * aux_M1[py, px]
                     px_tab[p, _PX_M2] = gd * aux_M2[py, px]
