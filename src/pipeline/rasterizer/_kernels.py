@@ -12,10 +12,11 @@ intersection ``q = k x l`` of pixel ``(x, y)`` is affine in the pixel:
 ``rho3`` and ``rho2`` tests is rejected without a division or an ``exp``.
 
 Layout: the image is cut into ``TILE x TILE`` tiles. Each visible surfel is listed in
-every tile its support box touches; within a tile the list is front to back (surfels
-are emitted in centre-depth order and a counting sort by tile keeps that order). One
-thread renders a tile surfel by surfel, touching only the pixels of the surfel's box
-inside the tile, with the per-pixel state in small local arrays.
+every tile its support box touches; each tile's list is then sorted front to back by
+``(centre depth, id)``. The tiles are dealt to the threads beforehand
+(``schedule_tiles``); one thread renders a tile surfel by surfel, touching only the
+pixels of the surfel's box inside the tile, with the per-pixel state in small local
+arrays.
 
 The forward writes one record per composited pair (pixel, transmittance before it,
 alpha, depth, intersection), grouped by list entry; the backward replays exactly those
