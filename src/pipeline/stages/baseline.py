@@ -229,7 +229,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    params = load_params(args.params) if args.params else load_params()
+    params = load_params(args.params)
     eval_cfg = section(EvaluateConfig, "evaluate", params)
     init_cfg = section(InitConfig, "init", params)
     scenes = {k: from_dict(SceneEntry, v, where=f"scenes.{k}") for k, v in (params.get("scenes") or {}).items()}

@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    params = load_params(args.params) if args.params else load_params()
+    params = load_params(args.params)
     cfg = section(EvaluateConfig, "evaluate", params)
     if args.cull is not None:
         cfg = dataclasses.replace(cfg, cull_views=args.cull)

@@ -89,7 +89,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    params = load_params(args.params) if args.params else None
+    params = load_params(args.params)
     cfg = section(InitConfig, "init", params)
     if args.backend:
         cfg.backend = args.backend

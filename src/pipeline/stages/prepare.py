@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import geometry
-from pipeline.config import DataConfig, section
+from pipeline.config import DataConfig, load_params, section
 from pipeline.data import dtu
 from pipeline.data.scene import Scene
 
@@ -61,9 +61,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pipeline.config import load_params
-
-    params = load_params(args.params) if args.params else None
+    params = load_params(args.params)
     cfg = section(DataConfig, "data", params)
     scene = prepare_scene(args.src, args.out, cfg, name=args.name)
     n_fg = "no masks" if scene.masks is None else f"mask coverage {np.mean(scene.masks):.1%}"

@@ -150,7 +150,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    params = load_params(args.params) if args.params else load_params()
+    params = load_params(args.params)
     cfg = section(PriorsConfig, "priors", params)
     loss = section(LossConfig, "loss", params)
     for key in ("normals", "features", "dsine_model", "vismvsnet_model"):
