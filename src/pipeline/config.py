@@ -60,6 +60,8 @@ class LossConfig:
     lambda_nc: float = 1.0
     lambda_ngc: float = 1.0
     lambda_d: float = 10000.0
+    lambda_dn: float = 0.05  # 2DGS depth-normal consistency
+    lambda_mask: float = 0.1  # |alpha - mask|, only where masks are used
 
 
 @dataclass
@@ -188,6 +190,106 @@ class PriorsConfig:
 
 
 @dataclass
+class LearningRates:
+    """Adam learning rates (2DGS defaults). ``means`` decays exponentially to
+    ``means_final`` over the run; both are in normalised units x ``scene_extent``."""
+
+    means: float = 1.6e-4
+    means_final: float = 1.6e-6
+    log_scales: float = 5e-3
+    quats: float = 1e-3
+    opacity_logits: float = 0.05
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 1.25e-4  # sh_dc / 20
+
+
+@dataclass
+class DensifyConfig:
+    """Adaptive density control (pipeline.optimize.strategy); iterations are 0-based steps."""
+
+    start_iter: int = 500
+    stop_iter: int = 15000
+    every: int = 100
+    grad_threshold: float = 2e-4  # mean screen-space gradient, normalised device units
+    percent_dense: float = 0.01  # clone if max scale <= this x extent, else split
+    prune_opacity: float = 0.05
+    reset_every: int = 3000  # 0: never
+    reset_value: float = 0.01
+    max_world_scale: float = 0.1  # x extent, pruned after the first reset
+    max_screen_fraction: float = 0.0  # x max(W, H), pruned after the first reset (0: off)
+    max_surfels: int = 300000  # budget
+
+
+@dataclass
+class TermStarts:
+    """Iteration from which each loss term is on (0: from the start)."""
+
+    gcf: int = 0
+    nor: int = 0
+    d: int = 3000
+    dn: int = 7000
+
+
+@dataclass
+class OptimizeConfig:
+    """The optimize stage (conf/optimize/*.yaml, docs/optimize.md). Training runs in the
+    normalised frame (unit sphere of scale_mat); sizes below are in its units."""
+
+    preset: str = "custom"  # the name of the conf/optimize preset, for reports
+    backend: str = "auto"  # auto (cuda when available, else cpu) | cpu | cuda | reference
+    iterations: int = 10000
+    seed: int = 0
+    sh_degree: int = 3
+    sh_every: int = 1000  # raise the evaluated SH degree by one every this many iterations
+    masks: str = "auto"  # auto (when the scene has masks) | on | off
+    background: float = 0.0  # grey level behind the object (DTU: black)
+    init_opacity: float = 0.1
+    init_normals: bool = True  # seed each surfel's normal from its point normal (False: random, 2DGS)
+    init_voxel_norm: float = 0.0  # thin the init cloud to this voxel before seeding (0: keep every point)
+    scene_extent: float = 1.0  # the object radius in the normalised frame
+    # Resolution schedule: [from_fraction_of_iterations, downscale_factor] pairs.
+    downscale: list[list[float]] = field(default_factory=lambda: [[0.0, 1]])
+    surface_alpha: float = 0.5  # a pixel is surface (for L_gcf, L_nor) where alpha exceeds this
+    dn_depth: str = "median"  # depth whose normals L_dn compares: median (2DGS DTU) | expected
+    near: float = 0.2  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
+    far: float = 100.0
+    checkpoint_every: int = 500  # 0: no checkpoints
+    lr: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    start: TermStarts = field(default_factory=TermStarts)
+
+    BACKENDS = ("auto", "cpu", "cuda", "reference")
+
+    def __post_init__(self) -> None:
+        for name, cls in (("lr", LearningRates), ("densify", DensifyConfig), ("start", TermStarts)):
+            value = getattr(self, name)
+            if isinstance(value, dict) or value is None:
+                setattr(self, name, from_dict(cls, value, where=f"optimize.{name}"))
+        if self.backend not in self.BACKENDS:
+            raise ValueError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
+        if self.masks not in ("auto", "on", "off"):
+            raise ValueError(f"optimize.masks must be auto, on or off, got {self.masks!r}")
+        if self.dn_depth not in ("median", "expected"):
+            raise ValueError(f"optimize.dn_depth must be median or expected, got {self.dn_depth!r}")
+        if self.iterations < 1 or not 0 <= self.sh_degree <= 3 or self.sh_every < 1:
+            raise ValueError("optimize: iterations >= 1, sh_degree in 0..3 and sh_every >= 1 required")
+        if not self.downscale or any(len(d) != 2 or not 0 <= d[0] <= 1 or d[1] < 1 for d in self.downscale):
+            raise ValueError(f"optimize.downscale must be [[fraction in 0..1, factor >= 1], ...], got {self.downscale}")
+        if sorted(d[0] for d in self.downscale) != [d[0] for d in self.downscale] or self.downscale[0][0] != 0:
+            raise ValueError(f"optimize.downscale must start at fraction 0 and be sorted, got {self.downscale}")
+        if not 0 < self.init_opacity < 1 or not 0 <= self.surface_alpha < 1 or not 0 < self.near < self.far:
+            raise ValueError("optimize: init_opacity in (0, 1), surface_alpha in [0, 1) and 0 < near < far required")
+
+    def downscale_at(self, it: int) -> int:
+        """Downscale factor of iteration ``it``."""
+        factor = self.downscale[0][1]
+        for frac, f in self.downscale:
+            if it >= frac * self.iterations:
+                factor = f
+        return int(factor)
+
+
+@dataclass
 class SceneEntry:
     """One entry of ``scenes`` in params.yaml."""
 
@@ -203,6 +305,7 @@ SECTIONS: dict[str, type] = {
     "loss": LossConfig,
     "init": InitConfig,
     "priors": PriorsConfig,
+    "optimize": OptimizeConfig,
 }
 
 

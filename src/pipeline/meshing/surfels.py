@@ -1,0 +1,99 @@
+"""Mesh from trained surfels: render depth at the input views (and optional virtual views
+between them), fuse by TSDF in mm (docs/mesh.md).
+
+Frames and units: surfels live in the normalised frame (``pipeline.optimize.surfels``);
+rendered depth is normalised camera z, multiplied by the scale_mat radius to mm; fusion
+runs in the world frame in mm with the scene's world-to-camera transforms.
+"""
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline import geometry
+from pipeline.data.scene import Scene
+from pipeline.meshing import tsdf
+from pipeline.optimize.surfels import SurfelParams
+from pipeline.rasterizer import Camera, rasterize
+
+
+def virtual_world_to_cams(world_to_cam: np.ndarray, centre_mm: np.ndarray, per_pair: int) -> np.ndarray:
+    """Cameras between each pair of input cameras: centres on the arc around ``centre_mm``
+    (spherical interpolation of the direction, linear in distance), orientations by quaternion
+    slerp; ``per_pair`` views strictly between each pair. ``(M, 4, 4)`` world mm -> camera."""
+    from scipy.spatial.transform import Rotation, Slerp
+
+    out = []
+    n = len(world_to_cam)
+    for a in range(n):
+        for b in range(a + 1, n):
+            ca, cb = geometry.camera_center(world_to_cam[a]) - centre_mm, geometry.camera_center(world_to_cam[b]) - centre_mm
+            ra, rb = np.linalg.norm(ca), np.linalg.norm(cb)
+            slerp = Slerp([0.0, 1.0], Rotation.from_matrix([world_to_cam[a][:3, :3], world_to_cam[b][:3, :3]]))
+            omega = np.arccos(np.clip(ca @ cb / (ra * rb), -1.0, 1.0))
+            for k in range(1, per_pair + 1):
+                t = k / (per_pair + 1)
+                if omega < 1e-9:
+                    d = ca / ra
+                else:
+                    d = (np.sin((1 - t) * omega) * ca / ra + np.sin(t * omega) * cb / rb) / np.sin(omega)
+                c = centre_mm + d * ((1 - t) * ra + t * rb)
+                R = slerp([t]).as_matrix()[0]
+                T = np.eye(4)
+                T[:3, :3] = R
+                T[:3, 3] = -R @ c
+                out.append(T)
+    return np.stack(out) if out else np.zeros((0, 4, 4))
+
+
+@torch.no_grad()
+def render_depths_mm(params: SurfelParams, scene: Scene, world_to_cam_mm: np.ndarray, K: np.ndarray, width: int,
+                     height: int, depth: str = "median", alpha_min: float = 0.5, backend: str = "cpu",
+                     masks: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Render ``(N, H, W)`` depth (camera z, mm; 0 = no depth) and colour at each camera.
+
+    A pixel has depth where the accumulated alpha exceeds ``alpha_min`` (and, when ``masks``
+    is given, inside the mask)."""
+    s = scene.norm_scale_mm
+    S = scene.norm_to_world
+    surf = params.surfels(params.sh_degree_max)
+    depths, colors = [], []
+    for i, T in enumerate(world_to_cam_mm):
+        T_norm = T @ S
+        T_norm[:3, :] /= s
+        T_norm[3] = [0.0, 0.0, 0.0, 1.0]
+        out = rasterize(surf, Camera(K[i], T_norm, width, height), backend)
+        d = (out.depth_median if depth == "median" else out.depth_expected).double().numpy() * s
+        ok = (out.alpha.double().numpy() > alpha_min) & (d > 0)
+        if masks is not None:
+            ok &= masks[i]
+        depths.append(np.where(ok, d, 0.0))
+        colors.append(out.features.clamp(0, 1).double().numpy())
+    return np.stack(depths), np.stack(colors)
+
+
+def mesh_from_surfels(params: SurfelParams, scene: Scene, voxel_mm: float, trunc_mm: float, depth: str = "median",
+                      alpha_min: float = 0.5, use_masks: bool = True, virtual_per_pair: int = 0,
+                      backend: str = "cpu") -> tuple[tsdf.Mesh, dict]:
+    """TSDF mesh (world mm) of surfels rendered at every input view (masked when
+    ``use_masks`` and the scene has masks) and ``virtual_per_pair`` virtual views between
+    each pair of input views (no mask there). Returns the mesh before component cleaning."""
+    masks = scene.masks if (use_masks and scene.masks is not None) else None
+    d_in, c_in = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height, depth,
+                                  alpha_min, backend, masks)
+    Ts, Ks, ds, cs = [scene.world_to_cam], [scene.K], [d_in], [c_in]
+    if virtual_per_pair > 0:
+        T_v = virtual_world_to_cams(scene.world_to_cam, scene.norm_to_world[:3, 3], virtual_per_pair)
+        K_v = np.repeat(scene.K[:1], len(T_v), axis=0)
+        d_v, c_v = render_depths_mm(params, scene, T_v, K_v, scene.width, scene.height, depth, alpha_min, backend)
+        Ts, Ks, ds, cs = Ts + [T_v], Ks + [K_v], ds + [d_v], cs + [c_v]
+    Ts, Ks, ds, cs = (np.concatenate(x) for x in (Ts, Ks, ds, cs))
+    centre = scene.norm_to_world[:3, 3]
+    depth_max = max(np.linalg.norm(geometry.camera_center(T) - centre) for T in Ts) + scene.norm_scale_mm
+    info = {"views_input": scene.num_views, "views_virtual": len(Ts) - scene.num_views,
+            "depth_pixels": int((ds > 0).sum()), "voxel_mm": voxel_mm, "trunc_mm": trunc_mm, "depth": depth}
+    if info["depth_pixels"] == 0:
+        raise ValueError("mesh: the surfels render no depth above the alpha threshold in any view "
+                         "(empty or transparent model: did training fail?)")
+    mesh = tsdf.fuse_depth_maps(ds, Ks, Ts, cs, voxel_mm, trunc_mm, depth_max)
+    return mesh, info

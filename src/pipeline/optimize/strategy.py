@@ -1,0 +1,166 @@
+"""Adaptive density control of the surfels as a strategy object with explicit state
+(after gsplat's ``DefaultStrategy`` and 2DGS's ``densify_and_prune``).
+
+* The screen-space gradient is the gradient of the loss w.r.t. each splat's projected
+  centre. Every rasterizer backend returns it in pixels; :func:`screen_grad_ndc` turns it
+  into normalised device units (x W/2, x H/2, as gsplat does), the one place where that
+  happens, so a threshold means the same on the cpu and cuda backends and at every
+  training resolution.
+* Sizes are in the normalised frame, relative to ``scene_extent`` (the object's radius,
+  1 for the unit sphere of scale_mat).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import torch
+
+from pipeline.optimize import ops
+from pipeline.optimize.surfels import SurfelParams
+from pipeline.rasterizer.project import quat_to_rotmat
+
+
+def screen_grad_ndc(means2d_grad: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """Norm of the screen-space gradient in normalised device units, ``(P,)``."""
+    g = means2d_grad.detach().to(torch.float64).clone()
+    g[:, 0] *= width / 2.0
+    g[:, 1] *= height / 2.0
+    return g.norm(dim=1)
+
+
+@dataclass
+class DensifyState:
+    """Accumulators since the last refinement, one entry per surfel."""
+
+    grad2d: torch.Tensor  # (P,) summed NDC gradient norms
+    count: torch.Tensor  # (P,) renders in which the surfel was visible
+    max_radii: torch.Tensor  # (P,) largest screen radius seen, in units of max(W, H)
+
+    @classmethod
+    def zeros(cls, n: int) -> DensifyState:
+        z = torch.zeros(n, dtype=torch.float64)
+        return cls(z.clone(), z.clone(), z.clone())
+
+    def select(self, keep: torch.Tensor) -> None:
+        self.grad2d, self.count, self.max_radii = self.grad2d[keep], self.count[keep], self.max_radii[keep]
+
+    def extend(self, n: int) -> None:
+        z = torch.zeros(n, dtype=torch.float64)
+        self.grad2d, self.count, self.max_radii = (torch.cat([t, z]) for t in (self.grad2d, self.count, self.max_radii))
+
+    def state_dict(self) -> dict:
+        return {"grad2d": self.grad2d, "count": self.count, "max_radii": self.max_radii}
+
+
+@dataclass
+class DensifyStrategy:
+    """Clone small / split large surfels with a high mean screen-space gradient, prune
+    transparent and oversized ones, reset opacities periodically; all under a surfel
+    budget. Iteration numbers are 0-based steps of the training loop."""
+
+    start_iter: int = 500
+    stop_iter: int = 15000
+    every: int = 100
+    grad_threshold: float = 2e-4  # mean NDC gradient norm (2DGS/3DGS)
+    percent_dense: float = 0.01  # clone if max scale <= this x extent, else split
+    split_factor: float = 1.6  # a split child's scale = parent / 1.6 (2DGS: 0.8 * 2)
+    prune_opacity: float = 0.05
+    reset_every: int = 3000  # 0: never
+    reset_value: float = 0.01  # opacity reset to min(opacity, this)
+    max_screen_fraction: float = 0.0  # prune radius > this x max(W, H) after the first reset (0: off)
+    max_world_scale: float = 0.1  # prune max scale > this x extent after the first reset
+    max_surfels: int = 1_000_000
+    scene_extent: float = 1.0
+    state: DensifyState | None = field(default=None, repr=False)
+
+    def initialize(self, num: int) -> None:
+        self.state = DensifyState.zeros(num)
+
+    def step_post_backward(self, params: SurfelParams, means2d_grad: torch.Tensor | None, radii: torch.Tensor,
+                           width: int, height: int) -> None:
+        """Accumulate the statistics of one render (call after ``backward``)."""
+        if means2d_grad is None:
+            return
+        visible = radii > 0
+        self.state.grad2d[visible] += screen_grad_ndc(means2d_grad, width, height)[visible]
+        self.state.count[visible] += 1
+        r = radii.to(torch.float64) / max(width, height)
+        self.state.max_radii = torch.maximum(self.state.max_radii, torch.where(visible, r, 0.0))
+
+    def step_post_update(self, params: SurfelParams, optimizer: torch.optim.Optimizer, it: int,
+                         generator: torch.Generator) -> dict:
+        """Refine after the optimizer step of iteration ``it``; returns what changed."""
+        done = {}
+        # No refinement within ``every`` steps after an opacity reset (as gsplat's
+        # pause_refine_after_reset): every surfel would look transparent and be pruned.
+        since_reset = it % self.reset_every if self.reset_every > 0 else it
+        if self.start_iter <= it < self.stop_iter and it > 0 and it % self.every == 0 and (
+                it < self.reset_every or since_reset >= self.every):
+            done.update(self._densify(params, optimizer, generator))
+            done.update(self._prune(params, optimizer, after_reset=self.reset_every > 0 and it > self.reset_every))
+            self.state = DensifyState.zeros(params.num)
+        if self.reset_every > 0 and it > 0 and it % self.reset_every == 0 and it < self.stop_iter:
+            with torch.no_grad():
+                cap = torch.logit(torch.tensor(self.reset_value, dtype=params.opacity_logits.dtype))
+                ops.set_values(params, optimizer, "opacity_logits", params.opacity_logits.clamp_max(cap))
+            done["reset"] = True
+        return done
+
+    def _densify(self, params: SurfelParams, optimizer, generator) -> dict:
+        grads = self.state.grad2d / self.state.count.clamp_min(1)
+        high = grads >= self.grad_threshold
+        with torch.no_grad():
+            max_scale = torch.exp(params.log_scales.max(dim=1).values).to(torch.float64)
+        small = max_scale <= self.percent_dense * self.scene_extent
+        clone, split = high & small, high & ~small
+        room = self.max_surfels - params.num
+        # Under the budget: the surfels with the largest gradients go first.
+        n_clone, n_split = int(clone.sum()), int(split.sum())
+        if n_clone + n_split > room:
+            order = torch.argsort(torch.where(high, grads, -1.0), descending=True)
+            allowed = torch.zeros_like(high)
+            allowed[order[: max(room, 0)]] = True
+            clone, split = clone & allowed, split & allowed
+            n_clone, n_split = int(clone.sum()), int(split.sum())
+        if n_clone:
+            with torch.no_grad():
+                new = {k: v[clone].detach().clone() for k, v in params.tensors().items()}
+            ops.append(params, optimizer, new)
+            self.state.extend(n_clone)
+            split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
+        if n_split:
+            with torch.no_grad():
+                src = {k: v[split].detach() for k, v in params.tensors().items()}
+                s = torch.exp(src["log_scales"])
+                R = quat_to_rotmat(src["quats"])
+                children = []
+                for _ in range(2):
+                    uv = torch.randn(s.shape, generator=generator, dtype=torch.float64).to(s) * s
+                    offset = (R[:, :, :2] @ uv.unsqueeze(-1)).squeeze(-1)
+                    child = dict(src)
+                    child["means"] = src["means"] + offset
+                    child["log_scales"] = torch.log(s / self.split_factor)
+                    children.append(child)
+                new = {k: torch.cat([c[k] for c in children]) for k in src}
+            ops.append(params, optimizer, new)
+            self.state.extend(2 * n_split)
+            keep = torch.cat([~split, torch.ones(2 * n_split, dtype=torch.bool)])
+            ops.select(params, optimizer, keep)
+            self.state.select(keep)
+        return {"cloned": n_clone, "split": n_split}
+
+    def _prune(self, params: SurfelParams, optimizer, after_reset: bool) -> dict:
+        with torch.no_grad():
+            prune = torch.sigmoid(params.opacity_logits).to(torch.float64) < self.prune_opacity
+            if after_reset:
+                prune |= torch.exp(params.log_scales.max(dim=1).values).to(torch.float64) > (
+                    self.max_world_scale * self.scene_extent)
+                if self.max_screen_fraction > 0:
+                    prune |= self.state.max_radii > self.max_screen_fraction
+        if prune.all():  # never prune to nothing: a scene of zero surfels cannot recover
+            prune[torch.argmax(params.opacity_logits.detach())] = False
+        n = int(prune.sum())
+        if n:
+            ops.select(params, optimizer, ~prune)
+            self.state.select(~prune)
+        return {"pruned": n}

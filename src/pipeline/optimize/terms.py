@@ -1,0 +1,73 @@
+"""Rendering losses of the training loop that the priors module does not define:
+D-SSIM, 2DGS depth-normal consistency, the mask term. Torch, differentiable, any float
+dtype. Images are ``(3, H, W)``; depth maps ``(H, W)`` camera-frame z; normals ``(3, H, W)``
+in the OpenCV camera frame, facing the camera (``n . ray < 0``).
+"""
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+SSIM_C1 = 0.01 ** 2
+SSIM_C2 = 0.03 ** 2
+
+
+def _gaussian_window(size: int, sigma: float, channels: int, like: torch.Tensor) -> torch.Tensor:
+    x = torch.arange(size, dtype=like.dtype, device=like.device) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    g = g / g.sum()
+    return (g[:, None] * g[None, :]).expand(channels, 1, size, size).contiguous()
+
+
+def ssim(img1: torch.Tensor, img2: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+    """Mean SSIM of two ``(C, H, W)`` images in [0, 1] (Wang et al. 2004; 11x11 Gaussian
+    window, sigma 1.5, zero padding as 3DGS/2DGS)."""
+    C = img1.shape[0]
+    w = _gaussian_window(window, sigma, C, img1)
+    pad = window // 2
+    a, b = img1.unsqueeze(0), img2.unsqueeze(0)
+    mu1 = F.conv2d(a, w, padding=pad, groups=C)
+    mu2 = F.conv2d(b, w, padding=pad, groups=C)
+    s11 = F.conv2d(a * a, w, padding=pad, groups=C) - mu1 * mu1
+    s22 = F.conv2d(b * b, w, padding=pad, groups=C) - mu2 * mu2
+    s12 = F.conv2d(a * b, w, padding=pad, groups=C) - mu1 * mu2
+    num = (2 * mu1 * mu2 + SSIM_C1) * (2 * s12 + SSIM_C2)
+    den = (mu1 * mu1 + mu2 * mu2 + SSIM_C1) * (s11 + s22 + SSIM_C2)
+    return (num / den).mean()
+
+
+def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """``((1 - lambda) L1 + lambda (1 - SSIM), L1)`` of two ``(3, H, W)`` images."""
+    l1 = (render - target).abs().mean()
+    return (1.0 - lambda_dssim) * l1 + lambda_dssim * (1.0 - ssim(render, target)), l1
+
+
+def depth_to_normals(depth: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """Unit normals ``(3, H, W)`` of the surface a depth map (camera z) describes, from
+    central differences of the back-projected points, facing the camera; 0 on the one-pixel
+    border and wherever the cross product vanishes."""
+    H, W = depth.shape
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=depth.dtype), torch.arange(W, dtype=depth.dtype), indexing="ij")
+    Kinv = torch.linalg.inv(K.to(depth.dtype))
+    rays = torch.stack([xs, ys, torch.ones_like(xs)], 0).reshape(3, -1)
+    pts = ((Kinv @ rays) * depth.reshape(1, -1)).reshape(3, H, W)
+    dx = pts[:, 1:-1, 2:] - pts[:, 1:-1, :-2]
+    dy = pts[:, 2:, 1:-1] - pts[:, :-2, 1:-1]
+    # dy x dx faces the camera in OpenCV axes (x right, y down, z forward).
+    n = torch.cross(dy, dx, dim=0)
+    norm = n.norm(dim=0, keepdim=True)
+    n = torch.where(norm > 0, n / norm.clamp_min(1e-20), torch.zeros_like(n))
+    return F.pad(n, (1, 1, 1, 1))
+
+
+def depth_normal_loss(normal_render: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+    """2DGS depth-normal consistency: mean over pixels of ``1 - n_render . (N_d alpha)``,
+    with ``normal_render`` the alpha-blended (not renormalised) normal and ``N_d`` the
+    normal of the rendered depth, weighted by the detached alpha."""
+    n_d = depth_to_normals(depth, K) * alpha.detach().unsqueeze(0)
+    return (1.0 - (normal_render * n_d).sum(0)).mean()
+
+
+def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Mean ``|alpha - mask|``: background pixels pull alpha to 0, object pixels to 1."""
+    return (alpha - mask.to(alpha)).abs().mean()

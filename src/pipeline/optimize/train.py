@@ -1,0 +1,311 @@
+"""The GCGS training loop (docs/optimize.md): 2D Gaussian surfels fitted to the input views
+in the normalised frame with
+
+    L = L_photo + lambda_gcf L_gcf + lambda_nor (lambda_nc L_nc + lambda_ngc L_ngc)
+        + lambda_d L_d + lambda_dn L_dn + lambda_mask L_mask
+
+(GCGS Eq. 13 plus 2DGS's depth-normal consistency L_dn and, where masks are used, the
+alpha-vs-mask term). One input view per iteration, in a seeded shuffled order; that view
+is the reference of L_gcf, the other input views its sources.
+
+Robustness: every term is checked for finiteness before the backward pass (a non-finite
+one stops training with its name and iteration); surfels with non-finite gradients or
+parameters, or a scale outside ``[MIN_SCALE, MAX_SCALE x extent]``, are removed before
+the optimizer step can spread them. A checkpoint (parameters, Adam moments, densification
+state, random states, view queue) is written every ``checkpoint_every`` iterations; a
+resumed run ends bitwise equal to an uninterrupted one on the deterministic cpu backend.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import time
+from collections import defaultdict
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from pipeline import atomic
+from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.losses import gcf_loss, normal_consistency_losses
+from pipeline.optimize import ops, terms
+from pipeline.optimize.strategy import DensifyState, DensifyStrategy
+from pipeline.optimize.surfels import PARAM_NAMES, SurfelParams
+from pipeline.optimize.views import TrainViews
+from pipeline.rasterizer import rasterize
+
+MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
+MAX_SCALE = 10.0  # x scene_extent; above, a surfel covers everything (degenerate)
+TIMED = ("render", "photo", "gcf", "nor", "dn", "dist", "mask", "backward", "step", "densify")
+
+
+class NonFiniteLossError(RuntimeError):
+    """A loss term became NaN or Inf; training stopped and no model was written."""
+
+
+def resolve_backend(name: str) -> str:
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("optimize.backend is cuda but no CUDA device is available (use auto or cpu)")
+    return name
+
+
+@dataclass
+class TrainResult:
+    params: SurfelParams
+    iterations: int
+    backend: str
+    num_init: int
+    history: list[dict] = field(default_factory=list)  # one row per logged iteration
+    seconds: dict = field(default_factory=dict)  # summed time per part of an iteration
+    removed_degenerate: int = 0
+    resumed_from: int | None = None
+    final_terms: dict = field(default_factory=dict)
+
+
+def _fingerprint(cfg: OptimizeConfig, loss: LossConfig, params0: SurfelParams, views: TrainViews) -> str:
+    h = hashlib.sha256()
+    h.update(json.dumps([asdict(cfg), asdict(loss), views.scene.view_ids], sort_keys=True, default=str).encode())
+    for t in params0.tensors().values():
+        h.update(t.detach().numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def _lrs(cfg: OptimizeConfig) -> dict[str, float]:
+    lrs = asdict(cfg.lr)
+    lrs["means"] = cfg.lr.means * cfg.scene_extent
+    lrs.pop("means_final")
+    return lrs
+
+
+def _means_lr(cfg: OptimizeConfig, it: int) -> float:
+    t = min(max(it / max(cfg.iterations - 1, 1), 0.0), 1.0)
+    return cfg.scene_extent * math.exp((1 - t) * math.log(cfg.lr.means) + t * math.log(cfg.lr.means_final))
+
+
+class Trainer:
+    """Holds the whole training state, so that a checkpoint is one ``state_dict``."""
+
+    def __init__(self, params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: LossConfig,
+                 backend: str = "cpu"):
+        self.cfg, self.loss, self.views = cfg, loss, views
+        self.backend = backend
+        self.params = params
+        self.num_init = params.num
+        self.fingerprint = _fingerprint(cfg, loss, params, views)
+        self.optimizer = ops.make_optimizer(params, _lrs(cfg))
+        d = cfg.densify
+        self.strategy = DensifyStrategy(
+            start_iter=d.start_iter, stop_iter=d.stop_iter, every=d.every, grad_threshold=d.grad_threshold,
+            percent_dense=d.percent_dense, prune_opacity=d.prune_opacity, reset_every=d.reset_every,
+            reset_value=d.reset_value, max_world_scale=d.max_world_scale, max_screen_fraction=d.max_screen_fraction,
+            max_surfels=d.max_surfels, scene_extent=cfg.scene_extent)
+        self.strategy.initialize(params.num)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.rng = np.random.default_rng(cfg.seed)
+        self.queue: list[int] = []
+        self.it = 0
+        self.removed_degenerate = 0
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    # -- checkpoints -------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "fingerprint": self.fingerprint, "it": self.it, "num_init": self.num_init,
+            "params": {k: v.detach().clone() for k, v in self.params.tensors().items()},
+            "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state.state_dict(),
+            "generator": self.generator.get_state(), "rng": self.rng.bit_generator.state,
+            "queue": list(self.queue), "removed_degenerate": self.removed_degenerate,
+            "seconds": dict(self.seconds),
+        }
+
+    def load_state_dict(self, state: dict) -> None:
+        if state["fingerprint"] != self.fingerprint:
+            raise ValueError("checkpoint belongs to another configuration or input")
+        self.params.replace({k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
+        self.optimizer = ops.make_optimizer(self.params, _lrs(self.cfg))
+        self.optimizer.load_state_dict(state["optimizer"])
+        self.strategy.state = DensifyState(**state["strategy"])
+        self.generator.set_state(state["generator"])
+        self.rng.bit_generator.state = state["rng"]
+        self.queue = list(state["queue"])
+        self.it = int(state["it"])
+        self.num_init = int(state["num_init"])
+        self.removed_degenerate = int(state["removed_degenerate"])
+        self.seconds = defaultdict(float, state["seconds"])
+
+    def save_checkpoint(self, path: Path) -> None:
+        with atomic.atomic_file(path) as tmp:
+            torch.save(self.state_dict(), tmp)
+
+    def try_resume(self, path: Path, log: Callable[[str], None]) -> bool:
+        if not path.is_file():
+            return False
+        try:
+            state = torch.load(path, weights_only=False)
+            self.load_state_dict(state)
+        except Exception as exc:  # a stale or broken checkpoint is not fatal: start over
+            log(f"ignoring checkpoint {path}: {exc}")
+            return False
+        log(f"resumed from {path} at iteration {self.it}")
+        return True
+
+    # -- one iteration -------------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self.queue:
+            self.queue = [int(i) for i in self.rng.permutation(self.views.num_views)]
+        return self.queue.pop()
+
+    def step(self) -> dict:
+        cfg, lw, it = self.cfg, self.loss, self.it
+        clock = time.perf_counter
+        t = clock()
+        for group in self.optimizer.param_groups:
+            if group["name"] == "means":
+                group["lr"] = _means_lr(cfg, it)
+        i = self._next_view()
+        v = self.views.at(i, cfg.downscale_at(it))
+        h, w = v.size
+        degree = min(cfg.sh_degree, it // cfg.sh_every)
+        out = rasterize(self.params.surfels(degree), v.camera, self.backend)
+        rgb = out.features.permute(2, 0, 1) + cfg.background * (1.0 - out.alpha)
+        target = v.image
+        if v.mask is not None:
+            m = v.mask.to(target.dtype)
+            target = target * m + cfg.background * (1.0 - m)
+        t2 = clock()
+        self.seconds["render"] += t2 - t
+
+        values: dict[str, torch.Tensor] = {}
+        total = torch.zeros((), dtype=rgb.dtype)
+
+        def add(name: str, value: torch.Tensor, weight: float) -> None:
+            nonlocal total, t2
+            if not bool(torch.isfinite(value)):
+                raise NonFiniteLossError(f"loss term {name} is {float(value)} at iteration {it} "
+                                         f"(view {v.view_id}, {self.params.num} surfels); no model written")
+            values[name] = value.detach()
+            total = total + weight * value
+            t3 = clock()
+            self.seconds[name] += t3 - t2
+            t2 = t3
+
+        photo, l1 = terms.photometric_loss(rgb, target, lw.lambda_dssim)
+        add("photo", photo, 1.0)
+        values["l1"] = l1.detach()
+        surface = out.alpha.detach() > cfg.surface_alpha
+        if v.mask is not None:
+            surface &= v.mask
+        if lw.lambda_gcf > 0 and it >= cfg.start.gcf and v.features is not None:
+            sources = [(s.K, s.world_to_cam, s.features, s.feature_image_size)
+                       for j in range(self.views.num_views) if j != i
+                       for s in [self.views.at(j, cfg.downscale_at(it))]]
+            add("gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, mask=surface,
+                                ref_image_size=v.feature_image_size), lw.lambda_gcf)
+        if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
+            n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
+            l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)
+            add("nor", lw.lambda_nc * l_nc + lw.lambda_ngc * l_ngc, lw.lambda_nor)
+        if lw.lambda_dn > 0 and it >= cfg.start.dn:
+            depth = out.depth_median if cfg.dn_depth == "median" else out.depth_expected
+            add("dn", terms.depth_normal_loss(out.normal_cam.permute(2, 0, 1), depth, out.alpha, v.K), lw.lambda_dn)
+        if lw.lambda_d > 0 and it >= cfg.start.d:
+            add("dist", out.distortion.mean(), lw.lambda_d)
+        if lw.lambda_mask > 0 and v.mask is not None:
+            add("mask", terms.mask_loss(out.alpha, v.mask), lw.lambda_mask)
+        add("total", total, 0.0)
+
+        t = clock()
+        total.backward()
+        t2 = clock()
+        self.seconds["backward"] += t2 - t
+        bad = self._degenerate()
+        if bad.any():
+            for p in self.params.tensors().values():
+                if p.grad is not None:
+                    p.grad[bad] = 0.0
+        self.strategy.step_post_backward(self.params, out.means2d.grad, out.radii, w, h)
+        self.optimizer.step()
+        self.optimizer.zero_grad(set_to_none=True)
+        bad |= self._degenerate()
+        if bad.any():
+            self._remove(bad)
+        t = clock()
+        self.seconds["step"] += t - t2
+        changes = self.strategy.step_post_update(self.params, self.optimizer, it, self.generator)
+        self.seconds["densify"] += clock() - t
+        self.it += 1
+        row = {"iteration": it, "view": v.view_id, "width": w, "height": h, "surfels": self.params.num}
+        row.update({k: float(x) for k, x in values.items()})
+        row.update({k: int(x) for k, x in changes.items()})
+        return row
+
+    def _degenerate(self) -> torch.Tensor:
+        """Surfels with non-finite parameters or gradients, or a degenerate scale."""
+        bad = torch.zeros(self.params.num, dtype=torch.bool)
+        for p in self.params.tensors().values():
+            bad |= ~torch.isfinite(p.detach().reshape(self.params.num, -1)).all(dim=1)
+            if p.grad is not None:
+                bad |= ~torch.isfinite(p.grad.reshape(self.params.num, -1)).all(dim=1)
+        ls = self.params.log_scales.detach()
+        bad |= (ls.min(dim=1).values < math.log(MIN_SCALE)) | (ls.max(dim=1).values > math.log(MAX_SCALE * self.cfg.scene_extent))
+        return bad
+
+    def _remove(self, bad: torch.Tensor) -> None:
+        keep = ~bad
+        if not keep.any():
+            raise NonFiniteLossError(f"every surfel became degenerate at iteration {self.it} (learning rates too high?)")
+        # Non-finite moments would survive the selection only on removed rows; clean the rest anyway.
+        ops.select(self.params, self.optimizer, keep)
+        self.strategy.state.select(keep)
+        self.removed_degenerate += int(bad.sum())
+
+
+def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: LossConfig,
+          checkpoint: str | Path | None = None, backend: str | None = None,
+          on_log: Callable[[dict], None] | None = None, log_every: int = 10,
+          stop_after: int | None = None, progress: bool = False, log: Callable[[str], None] = print) -> TrainResult:
+    """Train ``params`` in place; resume from ``checkpoint`` when it holds a state of this
+    same configuration and input, and write it every ``cfg.checkpoint_every`` iterations.
+    ``stop_after`` ends early after that many iterations (for tests of resuming)."""
+    backend = resolve_backend(backend or cfg.backend)
+    trainer = Trainer(params, views, cfg, loss, backend)
+    ckpt = Path(checkpoint) if checkpoint else None
+    resumed = trainer.it if (ckpt is not None and trainer.try_resume(ckpt, log)) else None
+    history: list[dict] = []
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.iterations, initial=trainer.it, desc="optimize", unit="it", dynamic_ncols=True)
+    last: dict = {}
+    done = 0
+    while trainer.it < cfg.iterations and (stop_after is None or done < stop_after):
+        t0 = time.perf_counter()
+        row = trainer.step()
+        row["seconds"] = time.perf_counter() - t0
+        last = row
+        done += 1
+        if row["iteration"] % log_every == 0 or trainer.it == cfg.iterations:
+            history.append(row)
+            if on_log:
+                on_log(row)
+        if bar is not None:
+            bar.update(1)
+            if row["iteration"] % log_every == 0:
+                bar.set_postfix({k: f"{row[k]:.4g}" for k in ("total", "l1", "gcf", "nor", "dist") if k in row}
+                                | {"N": row["surfels"]})
+        if ckpt is not None and cfg.checkpoint_every and trainer.it % cfg.checkpoint_every == 0:
+            trainer.save_checkpoint(ckpt)
+    if bar is not None:
+        bar.close()
+    return TrainResult(params=trainer.params, iterations=trainer.it, backend=backend, num_init=trainer.num_init,
+                       history=history, seconds={k: trainer.seconds.get(k, 0.0) for k in TIMED},
+                       removed_degenerate=trainer.removed_degenerate, resumed_from=resumed,
+                       final_terms={k: v for k, v in last.items() if k not in ("iteration", "view", "seconds")})

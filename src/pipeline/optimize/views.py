@@ -1,0 +1,118 @@
+"""Training views: images, masks, cameras (normalised frame) and priors of each input
+view, at each training resolution of the schedule (built once, on first use)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from pipeline import geometry
+from pipeline.data.scene import Scene, SceneError
+from pipeline.priors.io import features_path, normals_path, read_features, read_normals
+from pipeline.rasterizer import Camera
+
+
+@dataclass
+class ViewData:
+    """One input view at one resolution. Tensors are float32 (masks bool)."""
+
+    view_id: int
+    image: torch.Tensor  # (3, h, w) in [0, 1]
+    mask: torch.Tensor | None  # (h, w) bool, object pixels
+    K: torch.Tensor  # (3, 3) intrinsics at (h, w), integer pixel centres
+    world_to_cam: torch.Tensor  # (4, 4) normalised frame -> camera frame in normalised units
+    camera: Camera
+    normal_prior: torch.Tensor | None  # (3, h, w) camera frame, facing the camera
+    normal_valid: torch.Tensor | None  # (h, w) bool
+    features: torch.Tensor | None  # (C, h', w'), resolution independent
+    feature_image_size: tuple[float, float] | None  # the (H, W) of this resolution the features refer to
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.image.shape[1]), int(self.image.shape[2])
+
+
+def _area(img: np.ndarray, w: int, h: int) -> np.ndarray:
+    return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA) if img.shape[:2] != (h, w) else img
+
+
+class TrainViews:
+    """The input views of a scene with their priors; :meth:`at` gives a view at a
+    downscale factor (area-averaged images, intrinsics rescaled with the integer pixel
+    centre convention, normals averaged and renormalised, a pixel valid only where its
+    whole footprint was)."""
+
+    def __init__(self, scene: Scene, priors_dir: str | Path | None, use_masks: bool, want_normals: bool,
+                 want_features: bool, near: float, far: float):
+        self.scene = scene
+        self.use_masks = use_masks
+        self.near, self.far = near, far
+        self.w2c_norm = scene.world_to_cam_normalised()
+        self.normals: list = [None] * scene.num_views
+        self.features: list = [None] * scene.num_views
+        for i, v in enumerate(scene.view_ids):
+            if want_normals:
+                p = normals_path(priors_dir, v)
+                if not p.is_file():
+                    raise SceneError(f"{p}: missing normal prior of view {v} (run the priors stage with loss.lambda_nor > 0)")
+                prior = read_normals(p)
+                if prior.normal_cam.shape[:2] != (scene.height, scene.width):
+                    raise SceneError(f"{p}: normal map is {prior.normal_cam.shape[1]}x{prior.normal_cam.shape[0]}, "
+                                     f"scene is {scene.width}x{scene.height} (stale priors?)")
+                self.normals[i] = prior
+            if want_features:
+                p = features_path(priors_dir, v)
+                if not p.is_file():
+                    raise SceneError(f"{p}: missing feature map of view {v} (run the priors stage with loss.lambda_gcf > 0)")
+                self.features[i] = read_features(p)
+        self._cache: dict[tuple[int, int], ViewData] = {}
+
+    @property
+    def num_views(self) -> int:
+        return self.scene.num_views
+
+    def at(self, index: int, factor: int) -> ViewData:
+        key = (index, factor)
+        if key not in self._cache:
+            self._cache[key] = self._build(index, factor)
+        return self._cache[key]
+
+    def _build(self, i: int, factor: int) -> ViewData:
+        s = self.scene
+        H, W = s.height, s.width
+        h, w = max(1, round(H / factor)), max(1, round(W / factor))
+        K = geometry.scale_intrinsics(s.K[i], w / W, h / H)
+        image = _area(s.images[i], w, h)
+        mask = None
+        if self.use_masks and s.masks is not None:
+            mask = torch.from_numpy(_area(s.masks[i].astype(np.float32), w, h) > 0.5)
+        n_prior = n_valid = None
+        if self.normals[i] is not None:
+            pr = self.normals[i]
+            valid = pr.valid.astype(np.float32)
+            n = _area(pr.normal_cam * valid[..., None], w, h)
+            v = _area(valid, w, h)
+            norm = np.linalg.norm(n, axis=2, keepdims=True)
+            n_valid = torch.from_numpy((v > 1 - 1e-6) & (norm[..., 0] > 1e-6))
+            n_prior = torch.from_numpy(np.where(norm > 1e-6, n / np.maximum(norm, 1e-12), 0.0).transpose(2, 0, 1).copy()).float()
+        feats = size = None
+        if self.features[i] is not None:
+            fp = self.features[i]
+            feats = torch.from_numpy(fp.features)
+            size = (fp.image_size[0] * h / H, fp.image_size[1] * w / W)
+        w2c = self.w2c_norm[i]
+        return ViewData(
+            view_id=s.view_ids[i],
+            image=torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1))).float(),
+            mask=mask,
+            K=torch.from_numpy(K).float(),
+            world_to_cam=torch.from_numpy(w2c).float(),
+            camera=Camera(K, w2c, w, h, near=self.near, far=self.far),
+            normal_prior=n_prior,
+            normal_valid=n_valid,
+            features=feats,
+            feature_image_size=size,
+        )

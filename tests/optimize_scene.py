@@ -1,0 +1,56 @@
+"""A tiny training problem for the optimize tests: the analytic two-sphere scene of
+``init_scene`` at a small size, an init cloud back-projected from its exact depth, and
+priors (normals from the exact depth, default NCC features) written like the priors stage."""
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from init_scene import make_scene
+from pipeline import geometry
+from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.init.io import PointCloud
+from pipeline.priors import features as feat
+from pipeline.priors import normals as nrm
+from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, write_features, write_normals
+
+
+def tiny_problem(tmp: Path, width: int = 64, height: int = 48, stride: int = 3):
+    """``(scene, cloud, priors_dir)``; the cloud holds every ``stride``-th GT pixel."""
+    scene, depths = make_scene(width, height)
+    pts, cols, nors = [], [], []
+    priors = tmp / "priors"
+    for i, (K, T, z) in enumerate(zip(scene.K, scene.world_to_cam, depths)):
+        valid = np.isfinite(z)
+        depth = np.where(valid, z, 0.0)
+        n_cam, ok = nrm.normals_from_depth(depth, valid, K, step_px=1, smooth_sigma_px=0.0, smooth_sigma_mm=1.0,
+                                           max_slant_deg=85.0, where="test")
+        write_normals(normals_path(priors, scene.view_ids[i]), NormalPrior(scene.view_ids[i], n_cam, ok, "default"))
+        f = feat.default_features(scene.images[i], patch=3, scales=(1,), min_contrast=0.002, where="test")
+        write_features(features_path(priors, scene.view_ids[i]),
+                       FeaturePrior(scene.view_ids[i], f, feat.feature_image_size(height, width), "default"), "float32")
+        world = geometry.backproject_depth(K, T, depth)
+        sel = valid & ok
+        sel[::stride, :] &= True
+        keep = np.zeros_like(sel)
+        keep[::stride, ::stride] = True
+        sel &= keep
+        pts.append(world[sel])
+        cols.append(scene.images[i][sel])
+        nors.append(n_cam[sel] @ T[:3, :3])  # camera -> world: R^T n, as rows
+    cloud = PointCloud(np.concatenate(pts), np.concatenate(cols).astype(np.float64), np.concatenate(nors),
+                       np.ones(sum(len(p) for p in pts)))
+    return scene, cloud, priors
+
+
+def tiny_config(**over) -> tuple[OptimizeConfig, LossConfig]:
+    cfg = OptimizeConfig(iterations=12, sh_degree=1, sh_every=5, checkpoint_every=0,
+                         densify={"start_iter": 3, "stop_iter": 10, "every": 3, "reset_every": 8,
+                                  "grad_threshold": 1e-6, "max_surfels": 5000},
+                         start={"gcf": 0, "nor": 0, "d": 2, "dn": 2})
+    loss = LossConfig()
+    cfg = replace(cfg, **{k: v for k, v in over.items() if hasattr(cfg, k)})
+    loss = replace(loss, **{k: v for k, v in over.items() if hasattr(loss, k)})
+    return cfg, loss

@@ -1,0 +1,209 @@
+"""Parts of the optimize library: surfel initialisation and PLY layout, optimizer-consistent
+edits, the densification strategy, the rendering losses (against slow references, with
+gradients checked)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from pipeline.optimize import ops, terms
+from pipeline.optimize.strategy import DensifyStrategy, screen_grad_ndc
+from pipeline.optimize.surfels import (
+    SurfelInitError,
+    frames_from_normals,
+    init_params,
+    knn_scales,
+    ply_attribute_names,
+    read_surfel_ply,
+    rotmat_to_quat,
+    write_surfel_ply,
+)
+from pipeline.rasterizer.project import quat_to_rotmat
+
+
+def _params(n=50, seed=0, sh_degree=1):
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(size=(n, 3)) * 0.3
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    return init_params(pts, nrm, rng.random((n, 3)), sh_degree, 0.1, rng, dtype=torch.float64), pts, nrm
+
+
+def test_normals_become_the_third_rotation_column():
+    rng = np.random.default_rng(1)
+    n = rng.normal(size=(200, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    n[:3] = [[0, 0, 1], [0, 0, -1], [1, 0, 0]]  # axis-aligned and antipodal cases
+    R = frames_from_normals(n)
+    assert np.allclose(np.einsum("nij,nik->njk", R, R), np.eye(3), atol=1e-12)
+    assert np.allclose(np.linalg.det(R), 1.0)
+    q = rotmat_to_quat(R)
+    R2 = quat_to_rotmat(torch.from_numpy(q)).numpy()
+    assert np.allclose(R2, R, atol=1e-12)
+    assert np.allclose(R2[:, :, 2], n, atol=1e-12)
+
+
+def test_init_scales_colours_and_opacity():
+    params, pts, _ = _params()
+    d = np.sort(np.linalg.norm(pts[:, None] - pts[None], axis=2), axis=1)[:, 1:4]
+    expect = np.sqrt((d * d).mean(axis=1))
+    assert np.allclose(torch.exp(params.log_scales).detach().numpy(), expect[:, None], rtol=1e-9)
+    assert np.allclose(torch.sigmoid(params.opacity_logits).detach().numpy(), 0.1)
+    colors = params.surfels(0).features[:, 0] * 0.28209479177387814 + 0.5
+    assert torch.all((colors >= 0) & (colors <= 1))
+    assert knn_scales(np.zeros((4, 3))).min() > 0  # coincident points: finite log-scale
+
+
+def test_init_rejects_empty_and_non_finite_clouds():
+    rng = np.random.default_rng(0)
+    with pytest.raises(SurfelInitError, match="cloud.ply: no point"):
+        init_params(np.zeros((0, 3)), None, np.zeros((0, 3)), 0, 0.1, rng, where="cloud.ply")
+    with pytest.raises(SurfelInitError, match="non-finite"):
+        init_params(np.array([[np.nan, 0, 0]]), None, np.zeros((1, 3)), 0, 0.1, rng)
+    one = init_params(np.array([[0.1, 0.2, 0.3]]), None, np.full((1, 3), 0.5), 0, 0.1, rng)
+    assert one.num == 1 and torch.isfinite(one.log_scales).all()
+
+
+def test_ply_has_2dgs_layout_and_round_trips(tmp_path):
+    params, _, _ = _params(sh_degree=2)
+    S = np.diag([250.0, 250.0, 250.0, 1.0])
+    S[:3, 3] = [10.0, -20.0, 600.0]
+    path = write_surfel_ply(tmp_path / "s.ply", params, S)
+    header = path.read_bytes().split(b"end_header\n")[0].decode()
+    names = [ln.split()[-1] for ln in header.splitlines() if ln.startswith("property")]
+    assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    assert names[-7:] == ["opacity", "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"]
+    assert names == ply_attribute_names(8) and sum(n.startswith("f_rest_") for n in names) == 24
+    back = read_surfel_ply(path, S, dtype=torch.float64)
+    for k, v in params.tensors().items():
+        a, b = v.detach(), getattr(back, k).detach()
+        if k == "quats":
+            a = torch.nn.functional.normalize(a, dim=1)
+        assert torch.allclose(a, b, atol=2e-5, rtol=1e-5), k
+    # World-frame values: centres in mm, scales in mm.
+    data = np.frombuffer(path.read_bytes().split(b"end_header\n")[1], "<f4").reshape(params.num, -1)
+    assert np.allclose(data[:, :3], params.means.detach().numpy() * 250 + S[:3, 3], atol=1e-3)
+
+
+def test_ops_keep_adam_moments_aligned():
+    params, _, _ = _params(n=10)
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    loss = sum((v * torch.arange(1, v.numel() + 1, dtype=v.dtype).view_as(v)).sum() for v in params.tensors().values())
+    loss.backward()
+    opt.step()
+    before = {k: opt.state[v]["exp_avg"].clone() for k, v in params.tensors().items()}
+    keep = torch.tensor([True, False] * 5)
+    ops.select(params, opt, keep)
+    for k, v in params.tensors().items():
+        assert v.shape[0] == 5 and torch.equal(opt.state[v]["exp_avg"], before[k][keep])
+        assert opt.param_groups[[g["name"] for g in opt.param_groups].index(k)]["params"][0] is v
+    new = {k: v.detach()[:2].clone() for k, v in params.tensors().items()}
+    ops.append(params, opt, new)
+    for k, v in params.tensors().items():
+        st = opt.state[v]
+        assert v.shape[0] == 7
+        assert torch.equal(st["exp_avg"][:5], before[k][keep]) and torch.all(st["exp_avg"][5:] == 0)
+        assert torch.all(st["exp_avg_sq"][5:] == 0)
+    # The optimizer still steps every (new) tensor.
+    sum(v.sum() for v in params.tensors().values()).backward()
+    opt.step()
+
+
+def test_screen_gradient_is_resolution_normalised():
+    g = torch.tensor([[1e-3, 0.0], [0.0, 2e-3]])
+    assert torch.allclose(screen_grad_ndc(g, 400, 300), torch.tensor([0.2, 0.3], dtype=torch.float64))
+    # The same NDC displacement at twice the resolution has half the pixel gradient per pixel
+    # but twice the pixels: the normalised value is the same.
+    assert torch.allclose(screen_grad_ndc(g / 2, 800, 600), screen_grad_ndc(g, 400, 300))
+
+
+def test_strategy_clones_small_splits_large_and_respects_budget():
+    params, _, _ = _params(n=6)
+    with torch.no_grad():
+        params.log_scales[:3] = math.log(0.001)  # small -> clone
+        params.log_scales[3:] = math.log(0.05)  # large -> split
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    st = DensifyStrategy(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0, max_surfels=100)
+    st.initialize(params.num)
+    grad = torch.zeros(6, 2)
+    grad[[0, 3], 0] = 1e-3  # NDC: 1e-3 * 400 / 2 = 0.2 > threshold
+    st.step_post_backward(params, grad, torch.full((6,), 3, dtype=torch.int32), 400, 300)
+    done = st.step_post_update(params, opt, 10, torch.Generator().manual_seed(0))
+    assert done["cloned"] == 1 and done["split"] == 1
+    assert params.num == 6 + 1 + 1  # one clone added; one split replaced by two children
+    s = torch.exp(params.log_scales.detach())
+    assert torch.allclose(s[-2:], torch.full((2, 2), 0.05 / 1.6, dtype=s.dtype))
+    assert len(st.state.grad2d) == params.num and float(st.state.grad2d.sum()) == 0.0
+    # Budget: no room -> nothing added.
+    st.max_surfels = params.num
+    st.step_post_backward(params, torch.full((params.num, 2), 1.0), torch.ones(params.num, dtype=torch.int32), 400, 300)
+    done = st.step_post_update(params, opt, 20, torch.Generator().manual_seed(0))
+    assert done["cloned"] + done["split"] == 0 and params.num <= st.max_surfels
+
+
+def test_strategy_prunes_transparent_but_never_everything():
+    params, _, _ = _params(n=5)
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    with torch.no_grad():
+        params.opacity_logits[:] = -10.0
+    st = DensifyStrategy(start_iter=0, stop_iter=100, every=10, reset_every=0)
+    st.initialize(5)
+    done = st.step_post_update(params, opt, 10, torch.Generator())
+    assert done["pruned"] == 4 and params.num == 1
+
+
+def _ssim_slow(a: np.ndarray, b: np.ndarray) -> float:
+    """Per-pixel SSIM with an explicit 11x11 Gaussian window and zero padding."""
+    x = np.arange(11) - 5
+    g = np.exp(-(x**2) / (2 * 1.5**2))
+    w = np.outer(g, g) / g.sum() ** 2
+    C, H, W = a.shape
+    pa, pb = np.pad(a, ((0, 0), (5, 5), (5, 5))), np.pad(b, ((0, 0), (5, 5), (5, 5)))
+    out = []
+    for c in range(C):
+        for i in range(H):
+            for j in range(W):
+                wa, wb = pa[c, i:i + 11, j:j + 11], pb[c, i:i + 11, j:j + 11]
+                m1, m2 = (w * wa).sum(), (w * wb).sum()
+                s11, s22, s12 = (w * wa * wa).sum() - m1 * m1, (w * wb * wb).sum() - m2 * m2, (w * wa * wb).sum() - m1 * m2
+                out.append((2 * m1 * m2 + 1e-4) * (2 * s12 + 9e-4) / ((m1 * m1 + m2 * m2 + 1e-4) * (s11 + s22 + 9e-4)))
+    return float(np.mean(out))
+
+
+def test_ssim_matches_slow_reference_and_has_gradients():
+    rng = np.random.default_rng(0)
+    a, b = rng.random((3, 9, 13)), rng.random((3, 9, 13))
+    ta = torch.tensor(a, requires_grad=True)
+    assert abs(float(terms.ssim(ta.detach(), torch.tensor(b))) - _ssim_slow(a, b)) < 1e-10
+    assert abs(float(terms.ssim(torch.tensor(a), torch.tensor(a))) - 1.0) < 1e-12
+    assert torch.autograd.gradcheck(lambda x: terms.ssim(x, torch.tensor(b)), (ta,))
+
+
+def test_depth_to_normals_of_a_plane_faces_the_camera():
+    K = torch.tensor([[50.0, 0, 16], [0, 55.0, 12], [0, 0, 1]], dtype=torch.float64)
+    n_true = torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64)
+    n_true = n_true / n_true.norm()
+    # Plane n . x = -2 (in front of the camera, facing it): z = -2 / (n . K^-1 (x, y, 1)).
+    ys, xs = torch.meshgrid(torch.arange(24.0, dtype=torch.float64), torch.arange(32.0, dtype=torch.float64), indexing="ij")
+    rays = torch.linalg.inv(K) @ torch.stack([xs, ys, torch.ones_like(xs)]).reshape(3, -1)
+    z = (-2.0 / (n_true @ rays)).reshape(24, 32)
+    n = terms.depth_to_normals(z, K)
+    inner = n[:, 1:-1, 1:-1].reshape(3, -1)
+    assert torch.allclose(inner, n_true[:, None].expand_as(inner), atol=1e-9)
+    assert torch.all(n[:, 0] == 0) and torch.all(n[:, :, -1] == 0)
+    z.requires_grad_(True)
+    normal = n_true[:, None, None].expand(3, 24, 32).contiguous()
+    alpha = torch.ones(24, 32, dtype=torch.float64)
+    loss = terms.depth_normal_loss(normal, z, alpha, K)
+    assert float(loss) == pytest.approx(1 - (22 * 30) / (24 * 32), abs=1e-9)  # border pixels count 1
+    small = z.detach()[:6, :7].clone().requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda d: terms.depth_normal_loss(normal[:, :6, :7], d, alpha[:6, :7], K), (small,))
+
+
+def test_mask_loss():
+    alpha = torch.tensor([[0.2, 0.9]], requires_grad=True)
+    mask = torch.tensor([[False, True]])
+    assert float(terms.mask_loss(alpha, mask)) == pytest.approx((0.2 + 0.1) / 2)
