@@ -250,6 +250,7 @@ class OptimizeConfig:
     # Resolution schedule: [from_fraction_of_iterations, downscale_factor] pairs.
     downscale: list[list[float]] = field(default_factory=lambda: [[0.0, 1]])
     surface_alpha: float = 0.5  # a pixel is surface (for L_gcf, L_nor) where alpha exceeds this
+    gcf_max_points: int = 16384  # L_gcf on a random subset of at most this many surface pixels (0: all)
     dn_depth: str = "median"  # depth whose normals L_dn compares: median (2DGS DTU) | expected
     near: float = 0.2  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
     far: float = 100.0

@@ -188,7 +188,7 @@ class Trainer:
         def add(name: str, value: torch.Tensor, weight: float) -> None:
             nonlocal total, t2
             if not bool(torch.isfinite(value)):
-                raise NonFiniteLossError(f"loss term {name} is {float(value)} at iteration {it} "
+                raise NonFiniteLossError(f"loss term {name} is {float(value.detach())} at iteration {it} "
                                          f"(view {v.view_id}, {self.params.num} surfels); no model written")
             values[name] = value.detach()
             total = total + weight * value
@@ -206,7 +206,15 @@ class Trainer:
             sources = [(s.K, s.world_to_cam, s.features, s.feature_image_size)
                        for j in range(self.views.num_views) if j != i
                        for s in [self.views.at(j, cfg.downscale_at(it))]]
-            add("gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, mask=surface,
+            points = surface
+            n_surface = int(surface.sum())
+            if 0 < cfg.gcf_max_points < n_surface:  # a random subset: the loss is a mean over points
+                idx = torch.nonzero(surface.reshape(-1)).squeeze(1)
+                pick = idx[torch.randperm(n_surface, generator=self.generator)[: cfg.gcf_max_points]]
+                points = torch.zeros(surface.numel(), dtype=torch.bool)
+                points[pick] = True
+                points = points.view_as(surface)
+            add("gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, mask=points,
                                 ref_image_size=v.feature_image_size), lw.lambda_gcf)
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
             n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)

@@ -1,0 +1,132 @@
+"""The training loop on a tiny analytic scene: every term on, resume bitwise equal, the
+non-finite guard, and the extremes the issue lists (1 and 0 init points, black images,
+invalid priors, zero features, exploding learning rates, a scene 1000x larger or smaller)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from optimize_scene import tiny_config, tiny_problem
+from pipeline.init.io import PointCloud
+from pipeline.optimize import NonFiniteLossError, SurfelInitError, init_from_cloud, make_views, train
+from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals
+from pipeline.priors.io import write_features, write_normals
+
+
+@pytest.fixture(scope="module")
+def problem(tmp_path_factory):
+    return tiny_problem(tmp_path_factory.mktemp("tiny"))
+
+
+def _run(scene, cloud, priors, cfg, loss, **kw):
+    params = init_from_cloud(cloud, scene, cfg)
+    views = make_views(scene, priors, cfg, loss)
+    return train(params, views, cfg, loss, log_every=1, **kw)
+
+
+def _finite(result):
+    for name, t in result.params.tensors().items():
+        assert torch.isfinite(t).all(), name
+    for row in result.history:
+        for k, v in row.items():
+            assert np.isfinite(v), (k, row)
+
+
+def test_all_terms_run_and_photometric_error_falls(problem):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=24, surface_alpha=0.05)
+    cfg = replace(cfg, densify=replace(cfg.densify, reset_every=0))  # a reset darkens every render
+    res = _run(scene, cloud, priors, cfg, loss)
+    _finite(res)
+    seen = set().union(*(r.keys() for r in res.history))
+    assert {"photo", "gcf", "nor", "dn", "dist", "mask"} <= seen
+    assert any(r.get("gcf", 0) > 0 for r in res.history) and any(r.get("nor", 0) > 0 for r in res.history)
+    first = np.mean([r["l1"] for r in res.history[:3]])
+    last = np.mean([r["l1"] for r in res.history[-3:]])
+    assert last < first
+    assert res.params.num != res.num_init  # densification acted
+
+
+def test_resume_is_bitwise_equal(problem, tmp_path):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=12, checkpoint_every=4, surface_alpha=0.05)
+    straight = _run(scene, cloud, priors, cfg, loss)
+    ckpt = tmp_path / "ckpt.pt"
+    part = _run(scene, cloud, priors, cfg, loss, checkpoint=ckpt, stop_after=6)
+    assert part.iterations == 6 and ckpt.is_file()
+    resumed = _run(scene, cloud, priors, cfg, loss, checkpoint=ckpt)
+    assert resumed.resumed_from == 4 and resumed.iterations == 12
+    for k, a in straight.params.tensors().items():
+        assert torch.equal(a, resumed.params.tensors()[k]), k
+    # A checkpoint of another configuration is ignored, not loaded.
+    other, _ = tiny_config(iterations=12, checkpoint_every=4, seed=1)
+    res = _run(scene, cloud, priors, other, loss, checkpoint=ckpt, stop_after=1)
+    assert res.resumed_from is None
+
+
+def test_non_finite_loss_names_the_term_and_iteration(problem):
+    scene, cloud, priors = problem
+    bad = replace(scene, images=scene.images.copy())
+    bad.images[0, 10, 10, 0] = np.nan
+    cfg, loss = tiny_config(iterations=3)
+    with pytest.raises(NonFiniteLossError, match=r"loss term photo is nan at iteration \d"):
+        _run(bad, cloud, priors, cfg, loss)
+
+
+def test_init_cloud_of_zero_and_one_point(problem):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=4)
+    empty = PointCloud(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+    with pytest.raises(SurfelInitError, match="no point"):
+        init_from_cloud(empty, scene, cfg)
+    one = PointCloud(cloud.points_mm[:1], cloud.colors[:1], cloud.normals[:1], cloud.confidence[:1])
+    _finite(_run(scene, one, priors, cfg, loss))
+
+
+def test_black_images_invalid_priors_and_zero_features(problem, tmp_path):
+    scene, cloud, priors = problem
+    black = replace(scene, images=np.zeros_like(scene.images))
+    bad_priors = tmp_path / "priors"
+    for v in scene.view_ids:
+        n = read_normals(normals_path(priors, v))
+        write_normals(normals_path(bad_priors, v), NormalPrior(v, n.normal_cam, np.zeros_like(n.valid), n.backend))
+        f = read_features(features_path(priors, v))
+        write_features(features_path(bad_priors, v), FeaturePrior(v, np.zeros_like(f.features), f.image_size, f.backend),
+                       "float32")
+    cfg, loss = tiny_config(iterations=8, surface_alpha=0.0)
+    res = _run(black, cloud, bad_priors, cfg, loss)
+    _finite(res)
+    assert all(r.get("nor", 0.0) == 0.0 for r in res.history)  # no valid prior pixel: the term is 0
+
+
+def test_exploding_learning_rates_remove_degenerate_surfels(problem):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=6)
+    fast = replace(cfg, lr=replace(cfg.lr, log_scales=4.0, means=1.0, means_final=1.0))
+    res = _run(scene, cloud, priors, fast, loss)
+    _finite(res)
+    assert res.removed_degenerate > 0 and res.params.num > 0
+    s = torch.exp(res.params.log_scales.detach())
+    assert torch.all((s > 1e-8) & (s < 10.0))
+    # So high that every surfel degenerates in one step: a clear error, not a NaN model.
+    wild = replace(cfg, lr=replace(cfg.lr, log_scales=1e3))
+    with pytest.raises(NonFiniteLossError, match="every surfel became degenerate at iteration 0"):
+        _run(scene, cloud, priors, wild, loss)
+
+
+@pytest.mark.parametrize("factor", [1000.0, 0.001])
+def test_scene_scale_does_not_change_the_normalised_result(problem, factor):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=6, surface_alpha=0.05)
+    base = _run(scene, cloud, priors, cfg, loss)
+    S = np.diag([factor, factor, factor, 1.0])
+    T = scene.world_to_cam.copy()
+    T[:, :3, 3] *= factor
+    scaled = replace(scene, world_to_cam=T, norm_to_world=S @ scene.norm_to_world)
+    big = PointCloud(cloud.points_mm * factor, cloud.colors, cloud.normals, cloud.confidence)
+    res = _run(scaled, big, priors, cfg, loss)
+    for k, a in base.params.tensors().items():
+        assert torch.allclose(a, res.params.tensors()[k], rtol=1e-3, atol=1e-4), k
