@@ -312,3 +312,8 @@ def load_masks(root: str | Path, view_ids: list[int] | None = None) -> dict[int,
             raise SceneError(f"{mask_dir}: no mask for view {v}")
         out[v] = read_mask(files[v])
     return out
+
+
+def image_ids(root: str | Path) -> list[int]:
+    """Sorted view ids of the images of a scan."""
+    return sorted(_numbered_files(find_image_dir(Path(root))))
