@@ -7,6 +7,8 @@ import argparse
 import importlib
 import sys
 
+from pipeline.errors import InputError
+
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "params": ("pipeline.stages.params", "compose conf/ into params.yaml (or check it)"),
@@ -43,8 +45,9 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[args.command][0])
     try:
         return int(module.run(args) or 0)
-    except (ValueError, FileNotFoundError, OSError) as exc:
-        # Input errors (SceneError, CameraError ...) name the file and the problem.
+    except InputError as exc:
+        # Bad input (SceneError, CameraError, ConfigError ...) names the file and the
+        # problem: one line. Anything else is a bug and keeps its traceback.
         print(f"gcgs {args.command}: error: {exc}", file=sys.stderr)
         return 1
 

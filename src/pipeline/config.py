@@ -6,12 +6,16 @@ recomposes ``conf/`` and a test checks that the two agree.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
+
+from pipeline.errors import ConfigError, MissingInputError
+from pipeline.init import BACKEND_MODULES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CONF_DIR = REPO_ROOT / "conf"
@@ -22,9 +26,17 @@ T = TypeVar("T")
 
 @dataclass
 class DataConfig:
+    """Training views and resolution (conf/data/default.yaml). ``height`` must keep the
+    source images' aspect ratio (``gcgs prepare`` refuses to squash)."""
+
     views: list[int] = field(default_factory=lambda: [23, 24, 33])
     width: int = 800
     height: int = 600
+
+    def __post_init__(self) -> None:
+        if not self.views or any(int(v) != v or v < 0 for v in self.views) or len(set(self.views)) != len(self.views):
+            raise ConfigError(f"data.views must be distinct view ids >= 0, got {self.views}")
+        _check_size("data", self.width, self.height)
 
 
 @dataclass
@@ -34,6 +46,9 @@ class SynthConfig:
     width: int = 800
     height: int = 600
     camera_source: str = "data/raw/dtu/scan24"
+
+    def __post_init__(self) -> None:
+        _check_size("synth", self.width, self.height)
 
 
 @dataclass
@@ -47,7 +62,7 @@ class EvaluateConfig:
 
     def __post_init__(self) -> None:
         if self.cull_views not in ("input", "all", "none"):
-            raise ValueError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
+            raise ConfigError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
 
 
 @dataclass
@@ -78,11 +93,11 @@ class MVSConfig:
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
-            raise ValueError(f"init.mvs.window must be odd and >= 3, got {self.window}")
+            raise ConfigError(f"init.mvs.window must be odd and >= 3, got {self.window}")
         if self.depth_step_px <= 0 or self.max_depths < 3:
-            raise ValueError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
+            raise ConfigError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
         if self.refine_iters < 0 or not 0 < self.refine_step <= self.refine_range:
-            raise ValueError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
+            raise ConfigError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
 
 
 @dataclass
@@ -135,7 +150,7 @@ class InitConfig:
     sfm: SfMConfig = field(default_factory=SfMConfig)
     mast3r: MASt3RConfig = field(default_factory=MASt3RConfig)
 
-    BACKENDS = ("mvs", "sfm", "mast3r", "random")
+    BACKENDS = tuple(BACKEND_MODULES)
 
     def __post_init__(self) -> None:
         for name, cls in (("mvs", MVSConfig), ("consistency", ConsistencyConfig), ("sfm", SfMConfig),
@@ -144,9 +159,9 @@ class InitConfig:
             if isinstance(value, dict) or value is None:
                 setattr(self, name, from_dict(cls, value, where=f"init.{name}"))
         if self.backend not in self.BACKENDS:
-            raise ValueError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
+            raise ConfigError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.voxel_norm < 0:
-            raise ValueError(f"init.voxel_norm must be >= 0, got {self.voxel_norm}")
+            raise ConfigError(f"init.voxel_norm must be >= 0, got {self.voxel_norm}")
 
 
 @dataclass
@@ -172,19 +187,43 @@ class PriorsConfig:
 
     def __post_init__(self) -> None:
         if self.normals not in self.NORMALS:
-            raise ValueError(f"priors.normals must be one of {', '.join(self.NORMALS)}, got {self.normals!r}")
+            raise ConfigError(f"priors.normals must be one of {', '.join(self.NORMALS)}, got {self.normals!r}")
         if self.features not in self.FEATURES:
-            raise ValueError(f"priors.features must be one of {', '.join(self.FEATURES)}, got {self.features!r}")
+            raise ConfigError(f"priors.features must be one of {', '.join(self.FEATURES)}, got {self.features!r}")
         if self.normal_step_px < 1 or self.normal_smooth_sigma_px < 0 or self.normal_smooth_sigma_mm <= 0:
-            raise ValueError("priors: normal_step_px must be >= 1, normal_smooth_sigma_px >= 0, normal_smooth_sigma_mm > 0")
+            raise ConfigError("priors: normal_step_px must be >= 1, normal_smooth_sigma_px >= 0, normal_smooth_sigma_mm > 0")
         if not 0 < self.normal_max_slant_deg < 90:
-            raise ValueError(f"priors.normal_max_slant_deg must be in (0, 90), got {self.normal_max_slant_deg}")
+            raise ConfigError(f"priors.normal_max_slant_deg must be in (0, 90), got {self.normal_max_slant_deg}")
         if self.feature_patch < 3 or self.feature_patch % 2 == 0:
-            raise ValueError(f"priors.feature_patch must be odd and >= 3, got {self.feature_patch}")
+            raise ConfigError(f"priors.feature_patch must be odd and >= 3, got {self.feature_patch}")
         if not self.feature_scales or any(int(s) != s or s < 1 for s in self.feature_scales):
-            raise ValueError(f"priors.feature_scales must be positive integers, got {self.feature_scales}")
+            raise ConfigError(f"priors.feature_scales must be positive integers, got {self.feature_scales}")
         if self.feature_dtype not in ("float16", "float32"):
-            raise ValueError(f"priors.feature_dtype must be float16 or float32, got {self.feature_dtype!r}")
+            raise ConfigError(f"priors.feature_dtype must be float16 or float32, got {self.feature_dtype!r}")
+
+
+@dataclass
+class MeshConfig:
+    """TSDF meshing of depth maps (conf/mesh/default.yaml; ``gcgs tsdf``, later ``gcgs mesh``).
+
+    Sizes are in unit-sphere radii (x the scale_mat radius = mm); 2DGS on DTU uses voxel
+    0.004 and truncation 0.016. Cleaning keeps every connected component with at least
+    ``min_component_fraction`` of the largest one's triangles, so an object in several
+    separate parts keeps its parts while small floaters go."""
+
+    voxel_norm: float = 0.004
+    trunc_norm: float = 0.016
+    min_component_fraction: float = 0.05
+
+    def __post_init__(self) -> None:
+        if not 0 < self.voxel_norm < self.trunc_norm:
+            raise ConfigError(f"mesh: need 0 < voxel_norm < trunc_norm, got {self.voxel_norm}, {self.trunc_norm}")
+        if not 0 <= self.min_component_fraction <= 1:
+            raise ConfigError(f"mesh.min_component_fraction must be in [0, 1], got {self.min_component_fraction}")
+
+    def sizes_mm(self, norm_scale_mm: float) -> tuple[float, float]:
+        """``(voxel_mm, trunc_mm)`` for a scene whose unit sphere has radius ``norm_scale_mm``."""
+        return self.voxel_norm * norm_scale_mm, self.trunc_norm * norm_scale_mm
 
 
 @dataclass
@@ -203,7 +242,13 @@ SECTIONS: dict[str, type] = {
     "loss": LossConfig,
     "init": InitConfig,
     "priors": PriorsConfig,
+    "mesh": MeshConfig,
 }
+
+
+def _check_size(where: str, width: int, height: int) -> None:
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise ConfigError(f"{where}: width and height must be positive integers, got {width}x{height}")
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
@@ -212,7 +257,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ValueError(f"unknown key(s) {unknown} in config section {where or cls.__name__}")
+        raise ConfigError(f"unknown key(s) {unknown} in config section {where or cls.__name__}")
     return cls(**data)
 
 
@@ -223,15 +268,32 @@ def load_params(path: str | Path | None = None) -> dict[str, Any]:
         path = Path("params.yaml") if Path("params.yaml").is_file() else PARAMS_PATH
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: params file not found")
+        raise MissingInputError(f"{path}: params file not found")
     with open(path) as fh:
         return yaml.safe_load(fh) or {}
 
 
-def section(cls: type[T], key: str, params: dict[str, Any] | None = None) -> T:
-    """Typed config for one top-level key of params.yaml."""
+def section(cls: type[T], key: str, params: dict[str, Any] | None = None,
+            overrides: dict[str, Any] | None = None) -> T:
+    """Typed, validated config for one top-level key of params.yaml.
+
+    ``overrides`` (command-line values) maps field names to values, dotted for nested
+    sections (``{"mast3r.model": path}``); ``None`` values are not given and leave the
+    params value. They are merged into the section's mapping *before* the dataclass is
+    built, so an override is validated like a params value and a misspelt name fails."""
     params = load_params() if params is None else params
-    return from_dict(cls, params.get(key), where=key)
+    data = copy.deepcopy(params.get(key) or {})
+    for name, value in (overrides or {}).items():
+        if value is None:
+            continue
+        *parents, leaf = name.split(".")
+        node = data
+        for parent in parents:
+            node = node.setdefault(parent, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{key}.{name}: {parent} is not a section")
+        node[leaf] = value
+    return from_dict(cls, data, where=key)
 
 
 def compose_params(overrides: list[str] | None = None) -> dict[str, Any]:
