@@ -70,6 +70,8 @@ def _named_by_number(files) -> bool:
 
 
 def find_image_dir(root: Path) -> Path:
+    if not root.is_dir():
+        raise SceneError(f"{root}: scene directory not found")
     for name in IMAGE_DIRS:
         if (root / name).is_dir():
             return root / name
@@ -164,8 +166,6 @@ def load_scene(
         with_masks: read ``mask/`` when present (an absent folder gives ``masks=None``).
     """
     root = Path(root)
-    if not root.is_dir():
-        raise SceneError(f"{root}: scene directory not found")
     image_dir = find_image_dir(root)
     image_files = _numbered_files(image_dir)
     if not image_files:
