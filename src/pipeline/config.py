@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -63,6 +64,12 @@ class EvaluateConfig:
     def __post_init__(self) -> None:
         if self.cull_views not in ("input", "all", "none"):
             raise ConfigError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
+        for key in ("sample_spacing_mm", "downsample_radius_mm", "max_dist_mm"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) > 0):
+                raise ConfigError(f"evaluate.{key} must be a positive number of mm, got {getattr(self, key)}")
+        if not (math.isfinite(self.patch_mm) and self.patch_mm >= 0 and self.mask_dilation_px >= 0):
+            raise ConfigError(f"evaluate.patch_mm and mask_dilation_px must be >= 0, got {self.patch_mm}, "
+                              f"{self.mask_dilation_px}")
 
 
 @dataclass
@@ -248,7 +255,7 @@ SECTIONS: dict[str, type] = {
 
 def _check_size(where: str, width: int, height: int) -> None:
     if int(width) != width or int(height) != height or width < 1 or height < 1:
-        raise ConfigError(f"{where}: width and height must be positive integers, got {width}x{height}")
+        raise ConfigError(f"{where}: image size must be positive integers, got {width}x{height}")
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pipeline import geometry
 from pipeline.config import PriorsConfig
 from pipeline.errors import InputError
 from pipeline.onnx_models import OnnxModel
@@ -60,8 +61,7 @@ def normals_from_depth(depth_mm: np.ndarray, valid: np.ndarray, K: np.ndarray, c
         z[~valid] = 0.0
     H, W = z.shape
     k = int(step_px)
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T
+    rays = geometry.pixel_rays(K, shape=(H, W))
     P = rays * z[..., None]
 
     def shifted(a, dy, dx, fill):
@@ -119,8 +119,7 @@ def dsine_normals(model: OnnxModel, image: np.ndarray, K: np.ndarray, where: str
     n_dsine = out[:, t:t + H, left:left + W].transpose(1, 2, 0).astype(np.float64)
     norm = np.linalg.norm(n_dsine, axis=-1)
     n = -n_dsine / np.maximum(norm, 1e-12)[..., None]  # DSINE points away from the camera
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T
+    rays = geometry.pixel_rays(K, shape=(H, W))
     ok = (np.abs(norm - 1.0) < 0.1) & (np.sum(n * rays, -1) < 0)
     if not ok.any():
         raise NormalError(f"{model.path}: DSINE output for {where} has no usable normal (not unit length or facing away)")

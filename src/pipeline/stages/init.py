@@ -11,8 +11,6 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.atomic import atomic_dir
 from pipeline.config import InitConfig, load_params, section
 from pipeline.data.dtu import load_scene

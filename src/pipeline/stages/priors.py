@@ -14,8 +14,6 @@ import resource
 import time
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.atomic import atomic_dir
 from pipeline.config import LossConfig, PriorsConfig, load_params, section
 from pipeline.data.dtu import load_scene
