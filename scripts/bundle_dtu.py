@@ -9,7 +9,7 @@ import sys
 from pathlib import Path
 
 from pipeline.config import DataConfig
-from pipeline.stages.prepare import prepare_scene
+from pipeline.data.prepare import prepare_scene
 
 src, dst = Path(sys.argv[1]), Path(sys.argv[2])
 prepare_scene(src, dst, DataConfig(views=[23, 24, 33], width=800, height=600), name=dst.name,

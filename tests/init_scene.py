@@ -56,10 +56,12 @@ def texture(world: np.ndarray, wavelength_mm: float, seed: int = 0) -> np.ndarra
     return 0.5 + 0.5 * np.tanh(out / 2.0)
 
 
-def make_scene(width: int = 200, height: int = 150, seed: int = 0) -> tuple[Scene, np.ndarray]:
-    """The test scene at ``width x height`` and its GT depth maps ``(N, H, W)`` (inf = miss)."""
+def make_scene(width: int = 200, height: int = 150, seed: int = 0,
+               spheres: list[tuple[np.ndarray, float]] | None = None) -> tuple[Scene, np.ndarray]:
+    """The test scene at ``width x height`` and its GT depth maps ``(N, H, W)`` (inf = miss).
+    ``spheres``: (centre mm, radius mm) of each part (default :func:`spheres_world`)."""
     base = load_scene(SCAN, resolution=(width, height))
-    spheres = spheres_world(base)
+    spheres = spheres_world(base) if spheres is None else spheres
     px_mm = 680.0 / base.K[0, 0, 0]  # pixel footprint at the object distance
     light = np.array([0.3, -0.5, -0.8])
     light /= np.linalg.norm(light)
@@ -87,10 +89,11 @@ def make_scene(width: int = 200, height: int = 150, seed: int = 0) -> tuple[Scen
     return scene, np.stack(depths)
 
 
-def distance_to_spheres(points: np.ndarray, scene: Scene) -> np.ndarray:
+def distance_to_spheres(points: np.ndarray, scene: Scene,
+                        spheres: list[tuple[np.ndarray, float]] | None = None) -> np.ndarray:
     """Unsigned distance (mm) of world points to the union of the sphere surfaces."""
     d = np.full(len(points), np.inf)
-    for centre, radius in spheres_world(scene):
+    for centre, radius in spheres_world(scene) if spheres is None else spheres:
         d = np.minimum(d, np.abs(np.linalg.norm(points - centre, axis=1) - radius))
     return d
 

@@ -8,7 +8,7 @@ from pipeline import geometry
 from pipeline.config import DataConfig
 from pipeline.data import dtu
 from pipeline.data.scene import SceneError
-from pipeline.stages.prepare import prepare_scene
+from pipeline.data.prepare import prepare_scene
 
 
 def test_bundled_scan_loads_with_expected_cameras(bundled_scan):
@@ -98,6 +98,73 @@ def test_prepare_keeps_all_cameras_and_masks(tmp_path, bundled_scan):
     np.testing.assert_allclose(again.K, scene.K, atol=1e-9)
 
 
+def _scan_in_size(tmp_path, width, height, n_views=12):
+    """A scan of ``n_views`` views (ids 0..n-1) with images and masks of ``width x height``."""
+    rng = np.random.default_rng(1)
+    K = np.array([[1.2 * width, 0, (width - 1) / 2], [0, 1.2 * width, (height - 1) / 2], [0, 0, 1]])
+    ids = list(range(n_views))
+    Ts = {}
+    for v in ids:
+        T = np.eye(4)
+        T[:3, 3] = [v * 10.0 - 50.0, 0, 500.0]
+        Ts[v] = T
+    mask = np.zeros((height, width), bool)
+    mask[height // 4:3 * height // 4, width // 4:3 * width // 4] = True
+    return dtu.write_scene(tmp_path / "src", {v: rng.uniform(size=(height, width, 3)) for v in ids},
+                           {v: K for v in ids}, Ts, np.diag([100.0, 100.0, 100.0, 1.0]),
+                           masks={v: mask for v in ids}, meta={"name": "toy", "scan_id": 7})
+
+
+@pytest.mark.parametrize("views", [[0, 1, 2], [0, 1], [0, 2, 5], [3, 7, 11], [11, 4]])
+def test_prepare_then_load_round_trip_for_any_views(tmp_path, views):
+    src = _scan_in_size(tmp_path, 80, 60)
+    out = tmp_path / "prepared"
+    prepared = prepare_scene(src, out, DataConfig(views=views, width=40, height=30))
+    again = dtu.load_scene(out, view_ids=None)
+    assert again.view_ids == sorted(views) == sorted(prepared.view_ids)
+    order = [prepared.view_ids.index(v) for v in again.view_ids]
+    np.testing.assert_allclose(again.K, prepared.K[order], atol=1e-9)
+    np.testing.assert_array_equal(again.world_to_cam, prepared.world_to_cam[order])
+    assert len(dtu.load_cameras(out).ids) == 12  # held-out cameras are kept
+
+
+def test_prepare_cli_views_and_init_read_back(tmp_path, capsys):
+    """`gcgs prepare --views 0 1 2` then `gcgs init` on it (the reported failure)."""
+    from pipeline.cli import main
+
+    src = _scan_in_size(tmp_path, 80, 60)
+    out = tmp_path / "prepared"
+    assert main(["prepare", "--src", str(src), "--out", str(out), "--views", "0", "1", "2", "--width", "40"]) == 0
+    assert "views [0, 1, 2] at 40x30" in capsys.readouterr().out
+    rc = main(["init", "--scene", str(out), "--backend", "random", "--out-dir", str(tmp_path / "init")])
+    assert rc == 0, capsys.readouterr().err
+    assert (tmp_path / "init" / "points.ply").is_file()
+
+
+def test_prepare_keeps_the_aspect_ratio_of_a_5_4_source(tmp_path, capsys):
+    """A 1280x1024 (5:4) source: the default 800x600 (4:3) is refused with a message
+    naming the file and both ratios; --width alone derives the height."""
+    from pipeline.cli import main
+    from pipeline.data.prepare import check_aspect
+
+    src = _scan_in_size(tmp_path, 1280, 1024, n_views=3)
+    out = tmp_path / "prepared"
+    assert main(["prepare", "--src", str(src), "--out", str(out), "--views", "0", "1"]) == 1
+    err = capsys.readouterr().err
+    assert "image/000000.png: source images are 1280x1024 (aspect 1.250)" in err
+    assert "training size 800x600 has aspect 1.333" in err and "Traceback" not in err
+    assert not out.exists()
+    assert main(["prepare", "--src", str(src), "--out", str(out), "--views", "0", "1", "--width", "800"]) == 0
+    scene = dtu.load_scene(out, view_ids=None)
+    assert scene.images.shape == (2, 640, 800, 3)
+    # The scaled intrinsics keep square pixels: fx/fy as in the source.
+    assert scene.K[0, 0, 0] / scene.K[0, 1, 1] == pytest.approx(1.0)
+    # Sizes within a pixel of rounding are not a change of aspect; more is.
+    check_aspect(src, 801, 641)
+    with pytest.raises(SceneError, match="squash"):
+        check_aspect(src, 800, 642)
+
+
 # ---- bad input -------------------------------------------------------------------
 
 
@@ -113,8 +180,24 @@ def test_missing_directory_and_files(tmp_path):
         dtu.load_scene(root, view_ids=None)
 
 
-def test_camera_count_must_match_full_scan(tmp_path):
+def test_extra_cameras_are_held_out_views_when_images_are_numbered(tmp_path):
+    """Images 0..k-1 with cameras for more views (what `gcgs prepare --views 0 1 2` writes)
+    are views 0..k-1, not a full scan missing cameras."""
     root = _write_synthetic(tmp_path)
+    data = dict(np.load(root / "cameras_sphere.npz"))
+    data["world_mat_7"] = data["world_mat_0"]
+    data["scale_mat_7"] = data["scale_mat_0"]
+    np.savez(root / "cameras_sphere.npz", **data)
+    assert dtu.load_scene(root, view_ids=None).view_ids == [0, 1, 2]
+
+
+def test_camera_count_must_match_images_matched_by_index(tmp_path):
+    """Images without numbers in their names are matched to cameras by sorted index
+    (NeuS): then a different camera count means the pairing is unknown."""
+    root = _write_synthetic(tmp_path)
+    for i, name in enumerate("abc"):
+        (root / "image" / f"{i:06d}.png").rename(root / "image" / f"{name}.png")
+    assert dtu.load_scene(root, view_ids=None).view_ids == [0, 1, 2]
     data = dict(np.load(root / "cameras_sphere.npz"))
     data["world_mat_7"] = data["world_mat_0"]
     data["scale_mat_7"] = data["scale_mat_0"]

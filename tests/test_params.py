@@ -31,3 +31,29 @@ def test_unknown_key_is_rejected():
 
 def test_hydra_override_changes_composition():
     assert compose_params(["data.width=400"])["data"]["width"] == 400
+
+
+def test_section_applies_overrides_before_validation():
+    import pytest
+
+    from pipeline.errors import ConfigError
+
+    params = config.load_params()
+    before = yaml.safe_dump(params)
+    cfg = config.section(config.InitConfig, "init", params, {"backend": "random", "mast3r.model": "m.onnx",
+                                                             "seed": None})
+    assert (cfg.backend, cfg.mast3r.model, cfg.seed) == ("random", "m.onnx", params["init"]["seed"])
+    assert cfg.mvs == config.MVSConfig(**params["init"]["mvs"])  # the rest comes from params
+    assert yaml.safe_dump(params) == before  # params are not modified
+    with pytest.raises(ConfigError, match="init.backend must be one of mvs, sfm, mast3r, random, got 'colmap'"):
+        config.section(config.InitConfig, "init", params, {"backend": "colmap"})
+    with pytest.raises(ConfigError, match=r"unknown key\(s\) \['windw'\] in config section init.mvs"):
+        config.section(config.InitConfig, "init", params, {"mvs.windw": 5})
+    with pytest.raises(ConfigError, match="data.views must be distinct view ids"):
+        config.section(config.DataConfig, "data", params, {"views": [1, 1]})
+
+
+def test_one_list_of_init_backends():
+    from pipeline.init import BACKEND_MODULES
+
+    assert config.InitConfig.BACKENDS == tuple(BACKEND_MODULES)

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from onnx_helpers import SPHERE_CENTRE_CAM, SPHERE_RADIUS, export_fake_dsine
+from pipeline.config import PriorsConfig
 from pipeline.onnx_models import DSINE_CONTRACT, load_onnx
 from pipeline.priors.normals import NormalError, dsine_inputs, dsine_normals, normals_from_depth
 
@@ -14,6 +15,7 @@ K = np.array([[120.0, 0.0, 51.3], [0.0, 118.0, 36.8], [0.0, 0.0, 1.0]])
 # Closer-up camera for the depth-based estimator: the sphere spans ~65 px, 2.4 mm/px.
 K_NEAR = np.array([[250.0, 0.0, 51.3], [0.0, 245.0, 36.8], [0.0, 0.0, 1.0]])
 BACKGROUND_Z = 900.0
+UNSMOOTHED = PriorsConfig(normal_smooth_sigma_px=0)
 
 
 def sphere_gt(K=K):
@@ -38,7 +40,7 @@ def angle_deg(a, b):
 
 def test_depth_normals_match_analytic_sphere():
     depth, n_gt, hit, rays = sphere_gt(K_NEAR)
-    n, ok = normals_from_depth(depth, np.ones_like(hit), K_NEAR, step_px=2, smooth_sigma_px=0)
+    n, ok = normals_from_depth(depth, np.ones_like(hit), K_NEAR, UNSMOOTHED)
     interior = hit & ok
     assert interior.sum() > 0.85 * hit.sum()  # only the rim is lost
     err = angle_deg(n[interior], n_gt[interior])
@@ -58,8 +60,8 @@ def test_smoothing_reduces_noise_and_invalid_pixels_are_excluded():
     noisy = depth + np.random.default_rng(0).normal(0, 1.0, depth.shape)  # 1 mm depth noise
     valid = np.ones_like(hit)
     valid[30:34, 40:44] = False  # a hole in the depth map
-    raw, ok_raw = normals_from_depth(noisy, valid, K_NEAR, smooth_sigma_px=0)
-    smooth, ok = normals_from_depth(noisy, valid, K_NEAR, smooth_sigma_px=1.5, smooth_sigma_mm=3.0)
+    raw, ok_raw = normals_from_depth(noisy, valid, K_NEAR, UNSMOOTHED)
+    smooth, ok = normals_from_depth(noisy, valid, K_NEAR, PriorsConfig(normal_smooth_sigma_px=1.5, normal_smooth_sigma_mm=3.0))
     m = hit & ok & ok_raw
     assert m.sum() > 0.8 * hit.sum()
     assert np.median(angle_deg(smooth[m], n_gt[m])) < 0.7 * np.median(angle_deg(raw[m], n_gt[m]))
@@ -67,7 +69,7 @@ def test_smoothing_reduces_noise_and_invalid_pixels_are_excluded():
     assert not ok[30:34, 38:46].any() and not ok[28:36, 40:44].any()
     assert np.all(smooth[~ok] == 0)
     with pytest.raises(NormalError, match="no valid depth"):
-        normals_from_depth(depth, np.zeros_like(hit), K)
+        normals_from_depth(depth, np.zeros_like(hit), K, PriorsConfig())
 
 
 def test_dsine_padding_and_sign_convention(tmp_path):
@@ -84,7 +86,7 @@ def test_dsine_padding_and_sign_convention(tmp_path):
     assert np.max(angle_deg(n[hit], n_gt[hit])) < 0.05
     assert np.all(np.sum(n[ok] * rays[ok], -1) < 0)
     # The same convention as the depth-based normals of the same geometry.
-    n_d, ok_d = normals_from_depth(depth, np.ones_like(hit), K, smooth_sigma_px=0)
+    n_d, ok_d = normals_from_depth(depth, np.ones_like(hit), K, UNSMOOTHED)
     m = hit & ok_d
     assert np.median(angle_deg(n[m], n_d[m])) < 1.0
 
@@ -94,7 +96,7 @@ def test_rendered_mesh_normals_share_the_convention():
     camera like the analytic ones."""
     import open3d as o3d
 
-    from pipeline.priors.raycast import MeshCaster
+    from pipeline.meshing.raycast import MeshCaster
 
     mesh = o3d.geometry.TriangleMesh.create_sphere(SPHERE_RADIUS, resolution=80)
     mesh.translate(SPHERE_CENTRE_CAM)

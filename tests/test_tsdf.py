@@ -1,4 +1,5 @@
-"""TSDF fusion: exact depth of a known scene fuses into a mesh on that surface."""
+"""TSDF fusion: exact depth of a known scene fuses into a mesh on that surface, and
+cleaning keeps every part of a multi-part object."""
 from __future__ import annotations
 
 import numpy as np
@@ -6,6 +7,7 @@ import pytest
 
 from init_scene import distance_to_spheres, make_scene, spheres_world
 from pipeline import geometry
+from pipeline.config import MeshConfig
 from pipeline.meshing import tsdf
 
 
@@ -13,14 +15,14 @@ from pipeline.meshing import tsdf
 def fused():
     scene, gt = make_scene(320, 240)
     depth = np.where(np.isfinite(gt), gt, 0.0)
-    voxel, trunc = tsdf.default_sizes_mm(scene.norm_scale_mm)
+    voxel, trunc = MeshConfig().sizes_mm(scene.norm_scale_mm)
     mesh = tsdf.fuse_depth_maps(depth, scene.K, scene.world_to_cam, scene.images, voxel, trunc,
                                 depth_max_mm=2000.0)
     return scene, gt, mesh, voxel
 
 
 def test_default_sizes_follow_the_2dgs_settings():
-    assert tsdf.default_sizes_mm(250.0) == pytest.approx((1.0, 4.0))
+    assert MeshConfig().sizes_mm(250.0) == pytest.approx((1.0, 4.0))
 
 
 def test_gt_depth_fuses_onto_the_surface(fused):
@@ -43,18 +45,26 @@ def test_mesh_covers_what_the_cameras_see(fused):
     assert np.percentile(dist, 95) < 1.5 * voxel
 
 
-def test_cleaning_drops_small_components(fused):
+def test_cleaning_keeps_components_relative_to_the_largest(fused):
     scene, _, mesh, _ = fused
     big, small = spheres_world(scene)
-    full = tsdf.keep_largest_components(mesh, num_clusters=10)
-    one = tsdf.keep_largest_components(mesh, num_clusters=1)
-    assert len(one.triangles) < len(full.triangles)
+    everything, facts_all = tsdf.keep_components(mesh, 0.0)
+    assert len(everything.triangles) == len(mesh.triangles) == facts_all["triangles_fused"]
+    one, facts = tsdf.keep_components(mesh, 1.0)
+    assert facts["components_kept"] == 1 and facts["triangles_kept"] == len(one.triangles) < len(mesh.triangles)
     # The single kept component is the big sphere: every vertex is on it.
     on_big = np.abs(np.linalg.norm(one.vertices_mm - big[0], axis=1) - big[1])
     assert on_big.max() < 2.0
     assert one.triangles.max() < len(one.vertices_mm)
-    frac = tsdf.keep_largest_components(mesh, num_clusters=10, min_fraction=0.99)
-    assert len(frac.triangles) == len(one.triangles)
+    # The small sphere (~1/10 of the big one's triangles) is kept by the default rule (all
+    # but a few rim fragments, which are components of their own).
+    both, _ = tsdf.keep_components(mesh, MeshConfig().min_component_fraction)
+
+    def on_small(m):
+        return int((np.abs(np.linalg.norm(m.vertices_mm - small[0], axis=1) - small[1]) < 2.0).sum())
+
+    assert on_small(both) > 0.95 * on_small(mesh) > 1000 and on_small(one) == 0
+    assert tsdf.cleaning_warning(facts_all) is None
 
 
 def test_bad_depth_is_rejected():
@@ -78,30 +88,79 @@ def test_written_mesh_reads_back(fused, tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["m.ply"]
 
 
-def test_cli_meshes_an_init_folder(tmp_path, capsys):
-    import json
-
-    from pipeline.cli import main
+def _init_folder_from_gt(tmp_path, scene, gt):
+    """A scene folder and an init folder holding the exact depth maps of ``scene``."""
     from pipeline.data.dtu import write_scene
-    from pipeline.evaluation.gt import read_mesh
     from pipeline.init.io import DepthMap, depth_path, write_depth
 
-    scene, gt = make_scene(200, 150)
     ids = scene.view_ids
     scene_dir = write_scene(tmp_path / "scene", images=dict(zip(ids, scene.images)), K=dict(zip(ids, scene.K)),
                             world_to_cam=dict(zip(ids, scene.world_to_cam)), norm_to_world=scene.norm_to_world,
                             masks=dict(zip(ids, scene.masks)))
     init_dir = tmp_path / "init"
-    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(tmp_path / "m.ply")]) == 1
-    assert "no depth maps" in capsys.readouterr().err
     for i, v in enumerate(ids):
         valid = np.isfinite(gt[i])
         write_depth(depth_path(init_dir, v), DepthMap(v, np.where(valid, gt[i], 0.0).astype(np.float32),
                                                      valid.astype(np.float32), valid, scene.K[i], scene.world_to_cam[i]))
-    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(tmp_path / "m.ply"),
-                 "--num-clusters", "2"]) == 0
+    return scene_dir, init_dir
+
+
+def test_cli_meshes_an_init_folder(tmp_path, capsys):
+    import json
+
+    from pipeline.cli import main
+    from pipeline.evaluation.gt import read_mesh
+
+    scene, gt = make_scene(200, 150)
+    scene_dir, init_dir = _init_folder_from_gt(tmp_path, scene, gt)
+    assert main(["tsdf", "--init-dir", str(tmp_path / "noinit"), "--scene", str(scene_dir),
+                 "--out", str(tmp_path / "m.ply")]) == 1
+    assert "noinit/depth/023.npz: missing depth map for view 23" in capsys.readouterr().err
+    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(tmp_path / "m.ply")]) == 0
     facts = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     V, F = read_mesh(tmp_path / "m.ply")
     assert len(F) == facts["triangles_kept"] > 1000
     # At 200x150 a pixel (~1.8 mm) is coarser than a voxel (0.92 mm): a looser bound than above.
     assert np.median(distance_to_spheres(V, scene)) < facts["voxel_mm"]
+
+
+def test_every_part_of_a_multi_part_object_survives(tmp_path, capsys):
+    """Five separate parts of different sizes (like a sponge beside bricks and tools) and a
+    small floater: `gcgs tsdf` keeps every part, drops the floater, and reports both
+    triangle counts; keeping only the largest part drops most of the mesh and warns."""
+    import json
+
+    from pipeline.cli import main
+    from pipeline.evaluation.gt import read_mesh
+
+    base, _ = make_scene(40, 30)
+    c, r = base.norm_to_world[:3, 3], base.norm_scale_mm
+    parts = [(c + np.array(off) * r, rad * r) for off, rad in
+             (([-0.45, 0.0, 0.0], 0.2), ([0.45, 0.0, 0.0], 0.15), ([0.0, 0.45, 0.0], 0.12),
+              ([0.0, -0.45, 0.0], 0.1), ([0.0, 0.0, 0.0], 0.18))]
+    floater = (c + np.array([0.3, 0.3, -0.3]) * r, 0.025 * r)
+    scene, gt = make_scene(200, 150, spheres=parts + [floater])
+    scene_dir, init_dir = _init_folder_from_gt(tmp_path, scene, gt)
+    out = tmp_path / "m.ply"
+    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    facts = json.loads(captured.out.strip().splitlines()[-1])
+    assert "warning" not in captured.err
+    assert f"fused {facts['triangles_fused']} triangles" in captured.err
+    V, F = read_mesh(out)
+    assert len(F) == facts["triangles_kept"] < facts["triangles_fused"]
+    assert facts["components_kept"] == len(parts)
+    voxel = facts["voxel_mm"]
+    for centre, radius in parts:
+        on_part = np.abs(np.linalg.norm(V - centre, axis=1) - radius) < 2 * voxel
+        assert on_part.sum() > 200, (centre, radius)
+    assert not (np.abs(np.linalg.norm(V - floater[0], axis=1) - floater[1]) < 2 * voxel).any()
+    # Every kept vertex lies on some part.
+    assert np.percentile(distance_to_spheres(V, scene, parts), 99) < 2 * voxel
+
+    assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(out),
+                 "--min-component-fraction", "1"]) == 0
+    captured = capsys.readouterr()
+    facts = json.loads(captured.out.strip().splitlines()[-1])
+    assert facts["components_kept"] == 1
+    assert "warning" in captured.err and "lower mesh.min_component_fraction" in captured.err

@@ -7,6 +7,8 @@ import argparse
 import importlib
 import sys
 
+from pipeline.errors import InputError
+
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
     "params": ("pipeline.stages.params", "compose conf/ into params.yaml (or check it)"),
@@ -17,6 +19,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "tsdf": ("pipeline.stages.tsdf", "TSDF-fuse an init folder's depth maps into a cleaned mesh (mm)"),
     "baseline": ("pipeline.stages.baseline", "init clouds of every backend and the MVS+TSDF mesh vs GT, timed"),
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
+    "optimize": ("pipeline.stages.optimize", "train 2D Gaussian surfels with the GCGS losses"),
+    "mesh": ("pipeline.stages.mesh", "TSDF mesh (mm) of depth rendered from trained surfels"),
     "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
     "bench-raster": ("pipeline.rasterizer.bench", "benchmark the surfel rasterizer"),
 }
@@ -43,8 +47,9 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(COMMANDS[args.command][0])
     try:
         return int(module.run(args) or 0)
-    except (ValueError, FileNotFoundError, OSError) as exc:
-        # Input errors (SceneError, CameraError ...) name the file and the problem.
+    except InputError as exc:
+        # Bad input (SceneError, CameraError, ConfigError ...) names the file and the
+        # problem: one line. Anything else is a bug and keeps its traceback.
         print(f"gcgs {args.command}: error: {exc}", file=sys.stderr)
         return 1
 

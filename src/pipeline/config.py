@@ -6,12 +6,17 @@ recomposes ``conf/`` and a test checks that the two agree.
 """
 from __future__ import annotations
 
+import copy
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
+
+from pipeline.errors import ConfigError, MissingInputError
+from pipeline.init import BACKEND_MODULES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CONF_DIR = REPO_ROOT / "conf"
@@ -22,9 +27,17 @@ T = TypeVar("T")
 
 @dataclass
 class DataConfig:
+    """Training views and resolution (conf/data/default.yaml). ``height`` must keep the
+    source images' aspect ratio (``gcgs prepare`` refuses to squash)."""
+
     views: list[int] = field(default_factory=lambda: [23, 24, 33])
     width: int = 800
     height: int = 600
+
+    def __post_init__(self) -> None:
+        if not self.views or any(int(v) != v or v < 0 for v in self.views) or len(set(self.views)) != len(self.views):
+            raise ConfigError(f"data.views must be distinct view ids >= 0, got {self.views}")
+        _check_size("data", self.width, self.height)
 
 
 @dataclass
@@ -34,6 +47,9 @@ class SynthConfig:
     width: int = 800
     height: int = 600
     camera_source: str = "data/raw/dtu/scan24"
+
+    def __post_init__(self) -> None:
+        _check_size("synth", self.width, self.height)
 
 
 @dataclass
@@ -47,7 +63,13 @@ class EvaluateConfig:
 
     def __post_init__(self) -> None:
         if self.cull_views not in ("input", "all", "none"):
-            raise ValueError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
+            raise ConfigError(f"evaluate.cull_views must be input, all or none, got {self.cull_views!r}")
+        for key in ("sample_spacing_mm", "downsample_radius_mm", "max_dist_mm"):
+            if not (math.isfinite(getattr(self, key)) and getattr(self, key) > 0):
+                raise ConfigError(f"evaluate.{key} must be a positive number of mm, got {getattr(self, key)}")
+        if not (math.isfinite(self.patch_mm) and self.patch_mm >= 0 and self.mask_dilation_px >= 0):
+            raise ConfigError(f"evaluate.patch_mm and mask_dilation_px must be >= 0, got {self.patch_mm}, "
+                              f"{self.mask_dilation_px}")
 
 
 @dataclass
@@ -80,11 +102,11 @@ class MVSConfig:
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
-            raise ValueError(f"init.mvs.window must be odd and >= 3, got {self.window}")
+            raise ConfigError(f"init.mvs.window must be odd and >= 3, got {self.window}")
         if self.depth_step_px <= 0 or self.max_depths < 3:
-            raise ValueError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
+            raise ConfigError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
         if self.refine_iters < 0 or not 0 < self.refine_step <= self.refine_range:
-            raise ValueError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
+            raise ConfigError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
 
 
 @dataclass
@@ -137,7 +159,7 @@ class InitConfig:
     sfm: SfMConfig = field(default_factory=SfMConfig)
     mast3r: MASt3RConfig = field(default_factory=MASt3RConfig)
 
-    BACKENDS = ("mvs", "sfm", "mast3r", "random")
+    BACKENDS = tuple(BACKEND_MODULES)
 
     def __post_init__(self) -> None:
         for name, cls in (("mvs", MVSConfig), ("consistency", ConsistencyConfig), ("sfm", SfMConfig),
@@ -146,9 +168,9 @@ class InitConfig:
             if isinstance(value, dict) or value is None:
                 setattr(self, name, from_dict(cls, value, where=f"init.{name}"))
         if self.backend not in self.BACKENDS:
-            raise ValueError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
+            raise ConfigError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.voxel_norm < 0:
-            raise ValueError(f"init.voxel_norm must be >= 0, got {self.voxel_norm}")
+            raise ConfigError(f"init.voxel_norm must be >= 0, got {self.voxel_norm}")
 
 
 @dataclass
@@ -174,19 +196,52 @@ class PriorsConfig:
 
     def __post_init__(self) -> None:
         if self.normals not in self.NORMALS:
-            raise ValueError(f"priors.normals must be one of {', '.join(self.NORMALS)}, got {self.normals!r}")
+            raise ConfigError(f"priors.normals must be one of {', '.join(self.NORMALS)}, got {self.normals!r}")
         if self.features not in self.FEATURES:
-            raise ValueError(f"priors.features must be one of {', '.join(self.FEATURES)}, got {self.features!r}")
+            raise ConfigError(f"priors.features must be one of {', '.join(self.FEATURES)}, got {self.features!r}")
         if self.normal_step_px < 1 or self.normal_smooth_sigma_px < 0 or self.normal_smooth_sigma_mm <= 0:
-            raise ValueError("priors: normal_step_px must be >= 1, normal_smooth_sigma_px >= 0, normal_smooth_sigma_mm > 0")
+            raise ConfigError("priors: normal_step_px must be >= 1, normal_smooth_sigma_px >= 0, normal_smooth_sigma_mm > 0")
         if not 0 < self.normal_max_slant_deg < 90:
-            raise ValueError(f"priors.normal_max_slant_deg must be in (0, 90), got {self.normal_max_slant_deg}")
+            raise ConfigError(f"priors.normal_max_slant_deg must be in (0, 90), got {self.normal_max_slant_deg}")
         if self.feature_patch < 3 or self.feature_patch % 2 == 0:
-            raise ValueError(f"priors.feature_patch must be odd and >= 3, got {self.feature_patch}")
+            raise ConfigError(f"priors.feature_patch must be odd and >= 3, got {self.feature_patch}")
         if not self.feature_scales or any(int(s) != s or s < 1 for s in self.feature_scales):
-            raise ValueError(f"priors.feature_scales must be positive integers, got {self.feature_scales}")
+            raise ConfigError(f"priors.feature_scales must be positive integers, got {self.feature_scales}")
         if self.feature_dtype not in ("float16", "float32"):
-            raise ValueError(f"priors.feature_dtype must be float16 or float32, got {self.feature_dtype!r}")
+            raise ConfigError(f"priors.feature_dtype must be float16 or float32, got {self.feature_dtype!r}")
+
+
+@dataclass
+class MeshConfig:
+    """TSDF meshing of depth maps (conf/mesh/default.yaml; ``gcgs tsdf``, later ``gcgs mesh``).
+
+    Sizes are in unit-sphere radii (x the scale_mat radius = mm); 2DGS on DTU uses voxel
+    0.004 and truncation 0.016. Cleaning keeps every connected component with at least
+    ``min_component_fraction`` of the largest one's triangles, so an object in several
+    separate parts keeps its parts while small floaters go."""
+
+    voxel_norm: float = 0.004
+    trunc_norm: float = 0.016
+    min_component_fraction: float = 0.05
+    # gcgs mesh (surfels -> depth -> TSDF):
+    depth: str = "median"  # rendered depth fused: median (2DGS on DTU) | expected
+    alpha_min: float = 0.5  # pixels with less accumulated alpha have no depth
+    masks: bool = True  # zero the depth outside the input views' masks (where the scene has masks)
+    virtual_per_pair: int = 0  # virtual views rendered between each pair of input views
+
+    def __post_init__(self) -> None:
+        if self.depth not in ("median", "expected"):
+            raise ConfigError(f"mesh.depth must be median or expected, got {self.depth!r}")
+        if not 0 <= self.alpha_min < 1 or self.virtual_per_pair < 0:
+            raise ConfigError("mesh: alpha_min must be in [0, 1) and virtual_per_pair >= 0")
+        if not 0 < self.voxel_norm < self.trunc_norm:
+            raise ConfigError(f"mesh: need 0 < voxel_norm < trunc_norm, got {self.voxel_norm}, {self.trunc_norm}")
+        if not 0 <= self.min_component_fraction <= 1:
+            raise ConfigError(f"mesh.min_component_fraction must be in [0, 1], got {self.min_component_fraction}")
+
+    def sizes_mm(self, norm_scale_mm: float) -> tuple[float, float]:
+        """``(voxel_mm, trunc_mm)`` for a scene whose unit sphere has radius ``norm_scale_mm``."""
+        return self.voxel_norm * norm_scale_mm, self.trunc_norm * norm_scale_mm
 
 
 @dataclass
@@ -267,19 +322,19 @@ class OptimizeConfig:
             if isinstance(value, dict) or value is None:
                 setattr(self, name, from_dict(cls, value, where=f"optimize.{name}"))
         if self.backend not in self.BACKENDS:
-            raise ValueError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
+            raise ConfigError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.masks not in ("auto", "on", "off"):
-            raise ValueError(f"optimize.masks must be auto, on or off, got {self.masks!r}")
+            raise ConfigError(f"optimize.masks must be auto, on or off, got {self.masks!r}")
         if self.dn_depth not in ("median", "expected"):
-            raise ValueError(f"optimize.dn_depth must be median or expected, got {self.dn_depth!r}")
+            raise ConfigError(f"optimize.dn_depth must be median or expected, got {self.dn_depth!r}")
         if self.iterations < 1 or not 0 <= self.sh_degree <= 3 or self.sh_every < 1:
-            raise ValueError("optimize: iterations >= 1, sh_degree in 0..3 and sh_every >= 1 required")
+            raise ConfigError("optimize: iterations >= 1, sh_degree in 0..3 and sh_every >= 1 required")
         if not self.downscale or any(len(d) != 2 or not 0 <= d[0] <= 1 or d[1] < 1 for d in self.downscale):
-            raise ValueError(f"optimize.downscale must be [[fraction in 0..1, factor >= 1], ...], got {self.downscale}")
+            raise ConfigError(f"optimize.downscale must be [[fraction in 0..1, factor >= 1], ...], got {self.downscale}")
         if sorted(d[0] for d in self.downscale) != [d[0] for d in self.downscale] or self.downscale[0][0] != 0:
-            raise ValueError(f"optimize.downscale must start at fraction 0 and be sorted, got {self.downscale}")
+            raise ConfigError(f"optimize.downscale must start at fraction 0 and be sorted, got {self.downscale}")
         if not 0 < self.init_opacity < 1 or not 0 <= self.surface_alpha < 1 or not 0 < self.near < self.far:
-            raise ValueError("optimize: init_opacity in (0, 1), surface_alpha in [0, 1) and 0 < near < far required")
+            raise ConfigError("optimize: init_opacity in (0, 1), surface_alpha in [0, 1) and 0 < near < far required")
 
     def downscale_at(self, it: int) -> int:
         """Downscale factor of iteration ``it``."""
@@ -306,8 +361,14 @@ SECTIONS: dict[str, type] = {
     "loss": LossConfig,
     "init": InitConfig,
     "priors": PriorsConfig,
+    "mesh": MeshConfig,
     "optimize": OptimizeConfig,
 }
+
+
+def _check_size(where: str, width: int, height: int) -> None:
+    if int(width) != width or int(height) != height or width < 1 or height < 1:
+        raise ConfigError(f"{where}: image size must be positive integers, got {width}x{height}")
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
@@ -316,7 +377,7 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
     if unknown:
-        raise ValueError(f"unknown key(s) {unknown} in config section {where or cls.__name__}")
+        raise ConfigError(f"unknown key(s) {unknown} in config section {where or cls.__name__}")
     return cls(**data)
 
 
@@ -327,15 +388,32 @@ def load_params(path: str | Path | None = None) -> dict[str, Any]:
         path = Path("params.yaml") if Path("params.yaml").is_file() else PARAMS_PATH
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: params file not found")
+        raise MissingInputError(f"{path}: params file not found")
     with open(path) as fh:
         return yaml.safe_load(fh) or {}
 
 
-def section(cls: type[T], key: str, params: dict[str, Any] | None = None) -> T:
-    """Typed config for one top-level key of params.yaml."""
+def section(cls: type[T], key: str, params: dict[str, Any] | None = None,
+            overrides: dict[str, Any] | None = None) -> T:
+    """Typed, validated config for one top-level key of params.yaml.
+
+    ``overrides`` (command-line values) maps field names to values, dotted for nested
+    sections (``{"mast3r.model": path}``); ``None`` values are not given and leave the
+    params value. They are merged into the section's mapping *before* the dataclass is
+    built, so an override is validated like a params value and a misspelt name fails."""
     params = load_params() if params is None else params
-    return from_dict(cls, params.get(key), where=key)
+    data = copy.deepcopy(params.get(key) or {})
+    for name, value in (overrides or {}).items():
+        if value is None:
+            continue
+        *parents, leaf = name.split(".")
+        node = data
+        for parent in parents:
+            node = node.setdefault(parent, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{key}.{name}: {parent} is not a section")
+        node[leaf] = value
+    return from_dict(cls, data, where=key)
 
 
 def compose_params(overrides: list[str] | None = None) -> dict[str, Any]:

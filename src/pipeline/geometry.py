@@ -15,8 +15,10 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
+from pipeline.errors import InputError
 
-class CameraError(ValueError):
+
+class CameraError(InputError):
     """A camera matrix that cannot be used (non-finite, singular, not a projection)."""
 
 
@@ -81,13 +83,23 @@ def project(K: np.ndarray, world_to_cam: np.ndarray, points: np.ndarray) -> tupl
     return px, z
 
 
+def pixel_rays(K: np.ndarray, xs: np.ndarray | None = None, ys: np.ndarray | None = None,
+               shape: tuple[int, int] | None = None) -> np.ndarray:
+    """Camera-frame rays with z = 1 through image points, so a ray times a camera depth z
+    is the camera-frame point: ``K^-1 [x, y, 1]``, shape ``xs.shape + (3,)``.
+
+    Give the points as ``xs``, ``ys`` (same shapes; integer pixel centres), or
+    ``shape = (H, W)`` for every pixel centre of an ``H x W`` image (``(H, W, 3)``).
+    """
+    if shape is not None:
+        ys, xs = np.mgrid[0:shape[0], 0:shape[1]]
+    pix = np.stack([xs, ys, np.ones_like(xs)], axis=-1).astype(np.float64)
+    return pix @ np.linalg.inv(K).T
+
+
 def backproject_depth(K: np.ndarray, world_to_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
     """Back-project a depth map (``H x W``, camera z) to world points ``(H, W, 3)``."""
-    H, W = depth.shape
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    pix = np.stack([xs, ys, np.ones_like(xs)], axis=-1)
-    rays = pix @ np.linalg.inv(K).T  # z = 1 rays in the camera frame
-    cam = rays * depth[..., None]
+    cam = pixel_rays(K, shape=depth.shape) * depth[..., None]
     cam_to_world = np.linalg.inv(world_to_cam)
     return cam @ cam_to_world[:3, :3].T + cam_to_world[:3, 3]
 

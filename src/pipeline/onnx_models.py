@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.errors import InputError
+
 Dim = int | str | None
 
 # onnxruntime type strings -> numpy dtype names.
@@ -32,7 +34,7 @@ _ORT_DTYPES = {
 }
 
 
-class ModelError(ValueError):
+class ModelError(InputError):
     """A model file that is missing, unreadable or does not follow its contract."""
 
 

@@ -11,8 +11,9 @@ Layout of a scan directory::
 Views are matched to cameras by the number in the file name (``000023.png`` is view 23,
 as in the full 49-view scans where this equals the sorted index). A scan directory may
 hold cameras (and masks) for more views than it has images -- the bundled data does,
-so held-out views can be used for mask culling -- but a full scan whose images are
-numbered 0..N-1 must have exactly N cameras.
+so held-out views can be used for mask culling. Images whose names are not numbers are
+matched to cameras by their sorted index, as NeuS does; only then must the image and
+camera counts agree, since nothing else says which camera belongs to which image.
 """
 from __future__ import annotations
 
@@ -50,21 +51,27 @@ class DTUCameras:
 
 
 def _numbered_files(folder: Path, exts=IMAGE_EXTS) -> dict[int, Path]:
+    """Files of ``folder`` by view id: the number in the name, or (when some name is not
+    a number) the sorted index, as NeuS does (see :func:`_named_by_number`)."""
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in exts)
+    if not _named_by_number(files):
+        return dict(enumerate(files))
     out: dict[int, Path] = {}
-    for idx, p in enumerate(files):
-        m = re.fullmatch(r"(\d+)", p.stem)
-        key = int(m.group(1)) if m else idx
+    for p in files:
+        key = int(p.stem)
         if key in out:
             raise SceneError(f"{p}: two files in {folder} are numbered {key}")
         out[key] = p
-    if files and not all(re.fullmatch(r"\d+", p.stem) for p in files):
-        # Non-numeric names: fall back to the sorted index, as NeuS does.
-        out = {i: p for i, p in enumerate(files)}
     return out
 
 
+def _named_by_number(files) -> bool:
+    return all(re.fullmatch(r"\d+", p.stem) for p in files)
+
+
 def find_image_dir(root: Path) -> Path:
+    if not root.is_dir():
+        raise SceneError(f"{root}: scene directory not found")
     for name in IMAGE_DIRS:
         if (root / name).is_dir():
             return root / name
@@ -159,17 +166,16 @@ def load_scene(
         with_masks: read ``mask/`` when present (an absent folder gives ``masks=None``).
     """
     root = Path(root)
-    if not root.is_dir():
-        raise SceneError(f"{root}: scene directory not found")
     image_dir = find_image_dir(root)
     image_files = _numbered_files(image_dir)
     if not image_files:
         raise SceneError(f"{image_dir}: no images ({'/'.join(IMAGE_EXTS)})")
     cams = load_cameras(root)
-    if sorted(image_files) == list(range(len(image_files))) and len(cams.ids) != len(image_files):
+    if not _named_by_number(image_files.values()) and len(cams.ids) != len(image_files):
         raise SceneError(
             f"{cams.path}: camera count ({len(cams.ids)}) does not match image count "
-            f"({len(image_files)}) in {image_dir}"
+            f"({len(image_files)}) in {image_dir}, whose names are not view numbers (so images "
+            "are matched to cameras by sorted index)"
         )
     missing = [i for i in image_files if i not in cams.K]
     if missing:
@@ -282,12 +288,17 @@ def write_scene(
     return out_dir
 
 
-def stored_image_size(root: str | Path) -> tuple[int, int]:
-    """``(width, height)`` of the stored images of a scan (the size its cameras are for)."""
+def first_image(root: str | Path) -> Path:
+    """The image of a scan's lowest view id."""
     files = _numbered_files(find_image_dir(Path(root)))
     if not files:
         raise SceneError(f"{root}: no images")
-    h, w = read_image(next(iter(files.values()))).shape[:2]
+    return files[min(files)]
+
+
+def stored_image_size(root: str | Path) -> tuple[int, int]:
+    """``(width, height)`` of the stored images of a scan (the size its cameras are for)."""
+    h, w = read_image(first_image(root)).shape[:2]
     return w, h
 
 

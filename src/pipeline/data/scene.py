@@ -7,9 +7,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import geometry
+from pipeline.errors import InputError
 
 
-class SceneError(ValueError):
+class SceneError(InputError):
     """Bad scene input. The message names the file and the problem."""
 
 
@@ -86,3 +87,17 @@ class Scene:
     def projections_world(self) -> np.ndarray:
         """``(N, 4, 4)`` DTU-style projections ``K [R | t]`` (world mm -> pixels)."""
         return np.stack([geometry.compose_projection(k, T) for k, T in zip(self.K, self.world_to_cam)])
+
+
+def check_scene(scene: Scene, min_views: int = 1, needed_by: str = "this stage") -> None:
+    """Reject a scene the stages cannot use: non-finite images or cameras, or fewer than
+    ``min_views`` views (``needed_by`` names who needs them). The message names the scene
+    folder."""
+    where = scene.source or scene.name
+    if not np.all(np.isfinite(scene.images)):
+        raise SceneError(f"{where}: images have non-finite values")
+    for name, arr in (("K", scene.K), ("world_to_cam", scene.world_to_cam), ("norm_to_world", scene.norm_to_world)):
+        if not np.all(np.isfinite(arr)):
+            raise SceneError(f"{where}: {name} has non-finite values")
+    if scene.num_views < min_views:
+        raise SceneError(f"{where}: {needed_by} needs at least {min_views} views, got {scene.num_views}")

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline import geometry
 from pipeline.data import dtu
 from pipeline.evaluation import gt as gtmod
 
@@ -42,8 +43,7 @@ def silhouette_views(radius_mm: float, width: int = 800, height: int = 600, dist
     """Three cameras 25 degrees apart looking at the ball, and its exact silhouettes."""
     f = 1000.0 * width / 800
     K = np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]])
-    ys, xs = np.mgrid[0:height, 0:width]
-    pix = np.stack([xs, ys, np.ones_like(xs)], -1).reshape(-1, 3) @ np.linalg.inv(K).T
+    pix = geometry.pixel_rays(K, shape=(height, width)).reshape(-1, 3)
     out = {}
     for i, ang in enumerate(np.radians([-25.0, 0.0, 25.0])):
         C = CENTRE + distance_mm * np.array([np.sin(ang), 0.0, -np.cos(ang)])

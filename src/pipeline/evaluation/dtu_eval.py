@@ -171,12 +171,6 @@ def evaluate_mesh(
     undefined), ``valid``, ``problems``, ``counts``, ``fraction_beyond_max_dist``,
     ``timings_s`` and ``config``.
     """
-    for key in ("sample_spacing_mm", "downsample_radius_mm", "max_dist_mm"):
-        if not (math.isfinite(getattr(cfg, key)) and getattr(cfg, key) > 0):
-            raise ValueError(f"evaluate.{key} must be a positive number of mm, got {getattr(cfg, key)}")
-    if not (math.isfinite(cfg.patch_mm) and cfg.patch_mm >= 0 and cfg.mask_dilation_px >= 0):
-        raise ValueError(f"evaluate.patch_mm and mask_dilation_px must be >= 0, got {cfg.patch_mm}, "
-                         f"{cfg.mask_dilation_px}")
     say = log or (lambda _msg: None)
     timings: dict[str, float] = {}
     t_all = t = time.perf_counter()

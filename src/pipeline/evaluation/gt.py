@@ -22,7 +22,8 @@ import numpy as np
 import scipy.io
 import scipy.ndimage
 
-from pipeline import atomic
+from pipeline import ply
+from pipeline.errors import InputError, MissingInputError
 from pipeline.evaluation.sampling import (
     MeshError,
     check_mesh,
@@ -35,7 +36,7 @@ from pipeline.evaluation.sampling import (
 DEFAULT_RES_MM = 10.0
 
 
-class GroundTruthError(ValueError):
+class GroundTruthError(InputError):
     """Missing or malformed ground-truth files; the message names the file."""
 
 
@@ -86,28 +87,18 @@ def paths(gt_dir: str | Path, scan_id: int) -> dict[str, Path]:
 # --- PLY ---------------------------------------------------------------------------------
 
 
-def _ply_bytes(vertices: np.ndarray, faces: np.ndarray | None) -> bytes:
-    V = np.ascontiguousarray(vertices, dtype="<f4")
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(V)}",
-              "property float x", "property float y", "property float z"]
-    body = [V.tobytes()]
-    if faces is not None:
-        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
-        rec = np.empty(len(faces), dtype=[("n", "u1"), ("idx", "<i4", (3,))])
-        rec["n"] = 3
-        rec["idx"] = faces
-        body.append(rec.tobytes())
-    return ("\n".join(header + ["end_header"]) + "\n").encode("ascii") + b"".join(body)
+def _xyz_float32(points: np.ndarray) -> dict[str, np.ndarray]:
+    return {k: np.asarray(points[:, i], np.float32) for i, k in enumerate("xyz")}
 
 
 def write_ply_points(path: str | Path, points_mm: np.ndarray) -> None:
     """Binary PLY of points (float32 x, y, z), written atomically."""
-    atomic.write_bytes(path, _ply_bytes(points_mm, None))
+    ply.write(path, _xyz_float32(points_mm))
 
 
 def write_ply_mesh(path: str | Path, vertices_mm: np.ndarray, triangles: np.ndarray) -> None:
     """Binary PLY triangle mesh (float32 vertices, int32 faces), written atomically."""
-    atomic.write_bytes(path, _ply_bytes(vertices_mm, np.asarray(triangles, dtype=np.int64)))
+    ply.write(path, _xyz_float32(vertices_mm), faces=triangles)
 
 
 def read_points(path: str | Path) -> np.ndarray:
@@ -116,7 +107,7 @@ def read_points(path: str | Path) -> np.ndarray:
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
+        raise MissingInputError(f"{path}: file not found")
     pts = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
     if len(pts) == 0:
         raise GroundTruthError(f"{path}: no points (empty or unreadable point cloud)")
@@ -131,7 +122,7 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
+        raise MissingInputError(f"{path}: file not found")
     m = o3d.io.read_triangle_mesh(str(path))
     vertices = np.asarray(m.vertices, dtype=np.float64)
     if len(vertices) == 0:  # open3d returns an empty mesh (and only warns) on read failures
@@ -144,7 +135,7 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
 
 def _loadmat(path: Path, keys: tuple[str, ...]) -> dict:
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: file not found")
+        raise MissingInputError(f"{path}: file not found")
     try:
         data = scipy.io.loadmat(str(path))
     except Exception as exc:  # scipy raises several types for corrupt files
@@ -167,7 +158,7 @@ def read_ground_truth(gt_dir: str | Path, scan_id: int | None = None) -> GroundT
     """Read and check a GT folder; ``scan_id`` may be omitted when it holds one scan."""
     root = Path(gt_dir)
     if not root.is_dir():
-        raise FileNotFoundError(f"{root}: ground-truth folder not found")
+        raise MissingInputError(f"{root}: ground-truth folder not found")
     if scan_id is None:
         ids = find_scan_ids(root)
         if len(ids) != 1:
@@ -252,8 +243,8 @@ def write_ground_truth(
                 scipy.io.savemat(fh, data, do_compression=True)
 
         for key, writer in (
-            ("points", lambda f: Path(f).write_bytes(_ply_bytes(points, None))),
-            ("mesh", lambda f: Path(f).write_bytes(_ply_bytes(V, F))),
+            ("points", lambda f: Path(f).write_bytes(ply.encode(_xyz_float32(points)))),
+            ("mesh", lambda f: Path(f).write_bytes(ply.encode(_xyz_float32(V), F))),
             ("obs_mask", lambda f: savemat(f, {"ObsMask": mask, "BB": bb, "Res": np.array([[res_mm]])})),
             ("plane", lambda f: savemat(f, {"P": plane.reshape(4, 1)})),
         ):

@@ -9,8 +9,10 @@ import numba
 import numpy as np
 from numba import prange
 
+from pipeline.errors import InputError
 
-class MeshError(ValueError):
+
+class MeshError(InputError):
     """A mesh that cannot be evaluated or sampled (empty, degenerate, non-finite)."""
 
 

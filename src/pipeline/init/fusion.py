@@ -41,7 +41,7 @@ def check_consistency(depths: np.ndarray, valid: np.ndarray, K: np.ndarray, worl
     for r in range(N):
         rows, cols = np.nonzero(valid[r])
         d = depths[r, rows, cols].astype(np.float64)
-        rays = np.stack([cols, rows, np.ones_like(cols)], 1).astype(np.float64) @ np.linalg.inv(K[r]).T
+        rays = geometry.pixel_rays(K[r], cols, rows)
         X = (rays * d[:, None]) @ cam_to_world[r, :3, :3].T + cam_to_world[r, :3, 3]
         acc = X.copy()
         col_acc = images[r, rows, cols].astype(np.float64)
@@ -60,7 +60,7 @@ def check_consistency(depths: np.ndarray, valid: np.ndarray, K: np.ndarray, worl
             idx = np.nonzero(ok)[0]
             ui, vi = u[idx].astype(np.int64), v[idx].astype(np.int64)
             ds = depths[s, vi, ui].astype(np.float64)
-            rays_s = np.stack([ui, vi, np.ones_like(ui)], 1).astype(np.float64) @ np.linalg.inv(K[s]).T
+            rays_s = geometry.pixel_rays(K[s], ui, vi)
             Xs = (rays_s * ds[:, None]) @ cam_to_world[s, :3, :3].T + cam_to_world[s, :3, 3]
             back, zb = geometry.project(K[r], world_to_cam[r], Xs)
             err_px = np.hypot(back[:, 0] - cols[idx], back[:, 1] - rows[idx])

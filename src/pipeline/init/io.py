@@ -16,11 +16,13 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline import atomic
+from pipeline import atomic, ply
+from pipeline.data.scene import Scene
+from pipeline.errors import InputError
 from pipeline.npz import read_npz
 
 
-class InitFormatError(ValueError):
+class InitFormatError(InputError):
     """A points.ply or depth file that cannot be read; the message names the file."""
 
 
@@ -58,27 +60,16 @@ _PLY_DTYPE = np.dtype(
         ("confidence", "<f4"),
     ]
 )
-_PLY_TYPES = {"<f4": "float", "|u1": "uchar"}
 
 
 def write_ply(path: str | Path, cloud: PointCloud) -> Path:
     """Write ``cloud`` as binary PLY (atomically: temp file in the same dir, then rename)."""
-    path = Path(path)
-    rec = np.empty(len(cloud), dtype=_PLY_DTYPE)
-    for i, k in enumerate("xyz"):
-        rec[k] = cloud.points_mm[:, i]
-        rec["n" + k] = cloud.normals[:, i]
     rgb = np.clip(np.round(cloud.colors * 255.0), 0, 255).astype(np.uint8)
-    rec["red"], rec["green"], rec["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    rec["confidence"] = cloud.confidence
-    props = "".join(f"property {_PLY_TYPES[_PLY_DTYPE[n].str]} {n}\n" for n in _PLY_DTYPE.names)
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        "comment gcgs init point cloud: world frame, millimetres\n"
-        f"element vertex {len(cloud)}\n{props}end_header\n"
-    )
-    atomic.write_bytes(path, header.encode("ascii") + rec.tobytes())
-    return path
+    columns = {name: cloud.points_mm[:, i] for i, name in enumerate("xyz")}
+    columns.update({f"n{name}": cloud.normals[:, i] for i, name in enumerate("xyz")})
+    columns.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2], confidence=cloud.confidence)
+    return ply.write(path, {name: np.asarray(columns[name], _PLY_DTYPE[name]) for name in _PLY_DTYPE.names},
+                     comments=("gcgs init point cloud: world frame, millimetres",))
 
 
 def read_ply(path: str | Path) -> PointCloud:
@@ -166,6 +157,27 @@ def read_depth(path: str | Path) -> DepthMap:
         view_id=int(data["view_id"]), depth_mm=depth.astype(np.float32), confidence=conf.astype(np.float32),
         valid=valid.astype(bool), K=data["K"].astype(np.float64), world_to_cam=data["world_to_cam"].astype(np.float64),
     )
+
+
+def load_init_depths(init_dir: str | Path, scene: Scene, needed_by: str) -> list[DepthMap]:
+    """The init stage's depth maps of every view of ``scene``, checked against its size and
+    cameras; ``needed_by`` says in the messages what needs them."""
+    out = []
+    for v, K, T in zip(scene.view_ids, scene.K, scene.world_to_cam):
+        path = depth_path(init_dir, v)
+        if not path.is_file():
+            raise InitFormatError(f"{path}: missing depth map for view {v} ({needed_by} needs the depth maps of "
+                                  "a depth-based init backend, mvs or mast3r)")
+        d = read_depth(path)
+        if d.depth_mm.shape != (scene.height, scene.width):
+            raise InitFormatError(f"{path}: depth map is {d.depth_mm.shape[1]}x{d.depth_mm.shape[0]}, "
+                                  f"scene {scene.source} is {scene.width}x{scene.height}")
+        if not (np.allclose(d.K, K, rtol=1e-6, atol=1e-6) and np.allclose(d.world_to_cam, T, rtol=1e-6, atol=1e-6)):
+            raise InitFormatError(f"{path}: camera differs from view {v} of {scene.source} (stale init output?)")
+        if not d.valid.any():
+            raise InitFormatError(f"{path}: no valid depth pixel")
+        out.append(d)
+    return out
 
 
 @dataclass

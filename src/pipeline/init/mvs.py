@@ -46,7 +46,7 @@ def sphere_depth_range(K: np.ndarray, world_to_cam: np.ndarray, norm_to_world: n
     centre = norm_to_world[:3, 3]
     radius = margin * norm_to_world[0, 0]
     c_cam = world_to_cam[:3, :3] @ centre + world_to_cam[:3, 3]
-    rays = np.c_[pixels, np.ones(len(pixels))] @ np.linalg.inv(K).T  # z = 1 rays
+    rays = geometry.pixel_rays(K, pixels[:, 0], pixels[:, 1])
     # |t r - c|^2 = R^2 with t the camera z (rays have unit z).
     a = np.einsum("ij,ij->i", rays, rays)
     b = rays @ c_cam

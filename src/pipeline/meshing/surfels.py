@@ -11,6 +11,7 @@ import numpy as np
 import torch
 
 from pipeline import geometry
+from pipeline.config import MeshConfig
 from pipeline.data.scene import Scene
 from pipeline.meshing import tsdf
 from pipeline.optimize.surfels import SurfelParams
@@ -72,28 +73,30 @@ def render_depths_mm(params: SurfelParams, scene: Scene, world_to_cam_mm: np.nda
     return np.stack(depths), np.stack(colors)
 
 
-def mesh_from_surfels(params: SurfelParams, scene: Scene, voxel_mm: float, trunc_mm: float, depth: str = "median",
-                      alpha_min: float = 0.5, use_masks: bool = True, virtual_per_pair: int = 0,
-                      backend: str = "cpu") -> tuple[tsdf.Mesh, dict]:
-    """TSDF mesh (world mm) of surfels rendered at every input view (masked when
-    ``use_masks`` and the scene has masks) and ``virtual_per_pair`` virtual views between
-    each pair of input views (no mask there). Returns the mesh before component cleaning."""
-    masks = scene.masks if (use_masks and scene.masks is not None) else None
-    d_in, c_in = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height, depth,
-                                  alpha_min, backend, masks)
+def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backend: str = "cpu") -> tuple[tsdf.Mesh, dict]:
+    """Cleaned TSDF mesh (world mm) of surfels rendered at every input view (masked when
+    ``cfg.masks`` and the scene has masks) and ``cfg.virtual_per_pair`` virtual views between
+    each pair of input views (unmasked: no mask exists there). Returns the mesh and facts."""
+    masks = scene.masks if (cfg.masks and scene.masks is not None) else None
+    d_in, c_in = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height, cfg.depth,
+                                  cfg.alpha_min, backend, masks)
     Ts, Ks, ds, cs = [scene.world_to_cam], [scene.K], [d_in], [c_in]
-    if virtual_per_pair > 0:
-        T_v = virtual_world_to_cams(scene.world_to_cam, scene.norm_to_world[:3, 3], virtual_per_pair)
+    if cfg.virtual_per_pair > 0:
+        T_v = virtual_world_to_cams(scene.world_to_cam, scene.norm_to_world[:3, 3], cfg.virtual_per_pair)
         K_v = np.repeat(scene.K[:1], len(T_v), axis=0)
-        d_v, c_v = render_depths_mm(params, scene, T_v, K_v, scene.width, scene.height, depth, alpha_min, backend)
+        d_v, c_v = render_depths_mm(params, scene, T_v, K_v, scene.width, scene.height, cfg.depth, cfg.alpha_min,
+                                    backend)
         Ts, Ks, ds, cs = Ts + [T_v], Ks + [K_v], ds + [d_v], cs + [c_v]
     Ts, Ks, ds, cs = (np.concatenate(x) for x in (Ts, Ks, ds, cs))
+    if not (ds > 0).any():
+        raise tsdf.FusionError(f"{scene.source}: the surfels render no depth above alpha {cfg.alpha_min} in any view "
+                               "(an empty or transparent model: did training fail?)")
+    voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
     centre = scene.norm_to_world[:3, 3]
     depth_max = max(np.linalg.norm(geometry.camera_center(T) - centre) for T in Ts) + scene.norm_scale_mm
-    info = {"views_input": scene.num_views, "views_virtual": len(Ts) - scene.num_views,
-            "depth_pixels": int((ds > 0).sum()), "voxel_mm": voxel_mm, "trunc_mm": trunc_mm, "depth": depth}
-    if info["depth_pixels"] == 0:
-        raise ValueError("mesh: the surfels render no depth above the alpha threshold in any view "
-                         "(empty or transparent model: did training fail?)")
-    mesh = tsdf.fuse_depth_maps(ds, Ks, Ts, cs, voxel_mm, trunc_mm, depth_max)
+    mesh = tsdf.fuse_depth_maps(ds, Ks, Ts, cs, voxel, trunc, depth_max)
+    mesh, facts = tsdf.keep_components(mesh, cfg.min_component_fraction)
+    info = {"views_input": scene.num_views, "views_virtual": len(Ts) - scene.num_views, "depth": cfg.depth,
+            "depth_pixels": int((ds > 0).sum()), "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
+            **facts, "vertices": len(mesh.vertices_mm)}
     return mesh, info

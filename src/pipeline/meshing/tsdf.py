@@ -1,18 +1,31 @@
 """TSDF fusion of depth maps into a mesh (Open3D's tensor ``VoxelBlockGrid``), then
-cleaning (keep the largest connected components).
+cleaning (keep every connected component not much smaller than the largest).
 
-Units: depth maps are camera z in mm, the grid and the mesh are in world mm. The 2DGS
-DTU settings are voxel 0.004 and truncation 0.016 in the normalised frame, i.e. times
-the scale_mat radius in mm (:func:`default_sizes_mm`). Open3D's camera model has no
-skew; the tiny DTU skew (|K[0, 1]| ~ 2e-4 px) is dropped here.
+Units: depth maps are camera z in mm, the grid and the mesh are in world mm. Voxel and
+truncation sizes come from :class:`~pipeline.config.MeshConfig` in the normalised frame
+(2DGS on DTU: 0.004 and 0.016), i.e. times the scale_mat radius in mm. Open3D's camera
+model has no skew; the tiny DTU skew (|K[0, 1]| ~ 2e-4 px) is dropped here.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
-from pipeline import atomic
+from pipeline import geometry, ply
+from pipeline.config import MeshConfig
+from pipeline.data.dtu import load_scene
+from pipeline.errors import InputError
+from pipeline.init.io import load_init_depths
+
+# Cleaning that drops more than this fraction of the fused triangles gets a warning: a
+# real object may have lost a part (raise min_component_fraction's reach by lowering it).
+DROPPED_WARNING_FRACTION = 0.25
+
+
+class FusionError(InputError):
+    """Depth maps that fuse into no surface."""
 
 
 @dataclass
@@ -20,11 +33,6 @@ class Mesh:
     vertices_mm: np.ndarray  # (V, 3) float64 world mm
     triangles: np.ndarray  # (T, 3) int64
     colors: np.ndarray | None  # (V, 3) float in [0, 1]
-
-
-def default_sizes_mm(norm_scale_mm: float, voxel_norm: float = 0.004, trunc_norm: float = 0.016) -> tuple[float, float]:
-    """``(voxel_mm, trunc_mm)`` from normalised sizes and the scale_mat radius (mm)."""
-    return voxel_norm * norm_scale_mm, trunc_norm * norm_scale_mm
 
 
 def fuse_depth_maps(
@@ -90,47 +98,71 @@ def fuse_depth_maps(
     try:
         mesh = vbg.extract_triangle_mesh(weight_threshold=float(weight_threshold)).to_legacy()
     except RuntimeError as exc:  # Open3D fails on an empty extraction instead of returning nothing
-        raise ValueError(f"fuse_depth_maps: no surface above weight {weight_threshold} ({exc})") from exc
+        raise FusionError(f"fuse_depth_maps: no surface above weight {weight_threshold} ({exc})") from exc
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     tris = np.asarray(mesh.triangles, dtype=np.int64)
     cols = np.asarray(mesh.vertex_colors, dtype=np.float64) if with_color and mesh.has_vertex_colors() else None
     return Mesh(verts, tris, cols)
 
 
-def keep_largest_components(mesh: Mesh, num_clusters: int = 1, min_fraction: float = 0.0) -> Mesh:
-    """Keep the ``num_clusters`` largest triangle-connected components, and among those
-    only components with at least ``min_fraction`` of the largest one's triangles; drop
-    unreferenced vertices."""
+def keep_components(mesh: Mesh, min_fraction: float) -> tuple[Mesh, dict]:
+    """Keep every triangle-connected component with at least ``min_fraction`` of the
+    largest one's triangles (0 keeps all, 1 only the largest and its equals); drop
+    unreferenced vertices. Returns the mesh and facts: triangle and component counts
+    fused and kept."""
     import open3d as o3d
 
     if len(mesh.triangles) == 0:
-        return mesh
+        return mesh, {"triangles_fused": 0, "triangles_kept": 0, "components_fused": 0, "components_kept": 0}
     m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices_mm),
                                   o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32)))
     labels, sizes, _ = m.cluster_connected_triangles()
     labels, sizes = np.asarray(labels), np.asarray(sizes)
-    order = np.argsort(-sizes)[:max(1, num_clusters)]
-    order = order[sizes[order] >= min_fraction * sizes[order[0]]]
-    tris = mesh.triangles[np.isin(labels, order)]
+    kept = np.flatnonzero(sizes >= min_fraction * sizes.max())
+    tris = mesh.triangles[np.isin(labels, kept)]
     used = np.unique(tris)
     remap = np.full(len(mesh.vertices_mm), -1, np.int64)
     remap[used] = np.arange(len(used))
     cols = mesh.colors[used] if mesh.colors is not None else None
-    return Mesh(mesh.vertices_mm[used], remap[tris], cols)
+    facts = {"triangles_fused": len(mesh.triangles), "triangles_kept": len(tris),
+             "components_fused": len(sizes), "components_kept": len(kept)}
+    return Mesh(mesh.vertices_mm[used], remap[tris], cols), facts
 
 
-def write_mesh(path, mesh: Mesh) -> None:
-    """Binary PLY via Open3D, atomically (temp file in the same folder, then rename)."""
-    from pathlib import Path
+def cleaning_warning(facts: dict) -> str | None:
+    """A warning when cleaning dropped more than :data:`DROPPED_WARNING_FRACTION` of the
+    fused triangles, else ``None``."""
+    fused, kept = facts["triangles_fused"], facts["triangles_kept"]
+    if fused and fused - kept > DROPPED_WARNING_FRACTION * fused:
+        return (f"cleaning dropped {1 - kept / fused:.0%} of the fused triangles ({fused} -> {kept}; "
+                f"{facts['components_kept']} of {facts['components_fused']} components kept): if the object has "
+                "separate parts, lower mesh.min_component_fraction")
+    return None
 
-    import open3d as o3d
 
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    m = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(mesh.vertices_mm),
-                                  o3d.utility.Vector3iVector(mesh.triangles.astype(np.int32)))
+def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, cfg: MeshConfig) -> tuple[Mesh, dict]:
+    """Fuse the init stage's depth maps of every view of ``scene_dir`` (cameras checked
+    against the scene, colours from its images) and clean the mesh (world mm). Returns
+    the mesh and facts: sizes, views, triangles fused and kept."""
+    scene = load_scene(scene_dir, view_ids=None)
+    maps = load_init_depths(init_dir, scene, needed_by="TSDF fusion")
+    voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
+    # Farthest depth worth integrating: the far side of the scene sphere from any camera.
+    centre = scene.norm_to_world[:3, 3]
+    depth_max = max(np.linalg.norm(geometry.camera_center(m.world_to_cam) - centre) for m in maps) + scene.norm_scale_mm
+    mesh = fuse_depth_maps(
+        np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps]), scene.K, scene.world_to_cam, scene.images,
+        voxel, trunc, depth_max)
+    mesh, facts = keep_components(mesh, cfg.min_component_fraction)
+    info = {"voxel_mm": voxel, "trunc_mm": trunc, "depth_max_mm": float(depth_max), "views": scene.view_ids,
+            **facts, "vertices": len(mesh.vertices_mm), "min_component_fraction": cfg.min_component_fraction}
+    return mesh, info
+
+
+def write_mesh(path: str | Path, mesh: Mesh) -> None:
+    """Binary PLY (float64 vertices, uchar colours, int32 faces), written atomically."""
+    vertex = {"x": mesh.vertices_mm[:, 0], "y": mesh.vertices_mm[:, 1], "z": mesh.vertices_mm[:, 2]}
     if mesh.colors is not None:
-        m.vertex_colors = o3d.utility.Vector3dVector(np.clip(mesh.colors, 0, 1))
-    with atomic.atomic_file(path, suffix=".ply") as tmp:
-        if not o3d.io.write_triangle_mesh(str(tmp), m, write_ascii=False):
-            raise OSError(f"{path}: Open3D could not write the mesh")
+        rgb = np.clip(np.round(mesh.colors * 255.0), 0, 255).astype(np.uint8)
+        vertex.update(red=rgb[:, 0], green=rgb[:, 1], blue=rgb[:, 2])
+    ply.write(path, vertex, faces=mesh.triangles)

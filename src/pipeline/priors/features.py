@@ -22,6 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pipeline.errors import InputError
 from pipeline.onnx_models import OnnxModel
 
 # ImageNet statistics (RGB order).
@@ -29,7 +30,7 @@ IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 
 
-class FeatureError(ValueError):
+class FeatureError(InputError):
     """Features that cannot be computed (bad image, non-finite values, no texture)."""
 
 

@@ -15,10 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import atomic
+from pipeline.errors import InputError
 from pipeline.npz import read_npz
 
 
-class PriorsFormatError(ValueError):
+class PriorsFormatError(InputError):
     """A priors file that cannot be read; the message names the file."""
 
 

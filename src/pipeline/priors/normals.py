@@ -18,31 +18,37 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pipeline import geometry
+from pipeline.config import PriorsConfig
+from pipeline.errors import InputError
 from pipeline.onnx_models import OnnxModel
 from pipeline.priors.features import IMAGENET_MEAN, IMAGENET_STD
 
 
-class NormalError(ValueError):
+class NormalError(InputError):
     """Normals that cannot be computed (bad depth, bad model output)."""
 
 
-def normals_from_depth(depth_mm: np.ndarray, valid: np.ndarray, K: np.ndarray, step_px: int = 2,
-                       smooth_sigma_px: float = 2.0, smooth_sigma_mm: float = 2.0,
-                       max_slant_deg: float = 80.0, where: str = "depth") -> tuple[np.ndarray, np.ndarray]:
+def normals_from_depth(depth_mm: np.ndarray, valid: np.ndarray, K: np.ndarray, cfg: PriorsConfig,
+                       where: str = "depth") -> tuple[np.ndarray, np.ndarray]:
     """Normals ``(H, W, 3)`` float32 (camera frame, facing the camera) and mask ``(H, W)``.
 
     Args:
         depth_mm: camera-frame z (mm); ignored where ``valid`` is False.
         K: intrinsics at this size (integer pixel centres).
-        step_px: half-width of the central differences (pixels).
-        smooth_sigma_px, smooth_sigma_mm: bilateral filter's spatial sigma (pixels) and
-            depth sigma (mm); ``smooth_sigma_px = 0`` disables smoothing. Invalid pixels
-            are set to 0 depth first, so the depth sigma keeps them (and other surfaces
-            more than a few sigma away) out of the average.
-        max_slant_deg: a pixel is at a discontinuity when the depth step to a neighbour
-            ``step_px`` away exceeds what a surface slanted by this angle to the image
-            plane would give (``tan(angle) * step_px * z / f``); such pixels are invalid.
+        cfg: the ``normal_*`` settings:
+            ``normal_step_px``: half-width of the central differences (pixels).
+            ``normal_smooth_sigma_px``, ``normal_smooth_sigma_mm``: bilateral filter's
+            spatial sigma (pixels) and depth sigma (mm); a spatial sigma of 0 disables
+            smoothing. Invalid pixels are set to 0 depth first, so the depth sigma keeps
+            them (and other surfaces more than a few sigma away) out of the average.
+            ``normal_max_slant_deg``: a pixel is at a discontinuity when the depth step
+            to a neighbour ``step_px`` away exceeds what a surface slanted by this angle
+            to the image plane would give (``tan(angle) * step_px * z / f``); such
+            pixels are invalid.
     """
+    step_px, max_slant_deg = cfg.normal_step_px, cfg.normal_max_slant_deg
+    smooth_sigma_px, smooth_sigma_mm = cfg.normal_smooth_sigma_px, cfg.normal_smooth_sigma_mm
     if depth_mm.ndim != 2 or valid.shape != depth_mm.shape:
         raise NormalError(f"{where}: depth {depth_mm.shape} and valid {valid.shape} must be equal (H, W)")
     valid = valid.astype(bool) & np.isfinite(depth_mm) & (depth_mm > 0)
@@ -55,8 +61,7 @@ def normals_from_depth(depth_mm: np.ndarray, valid: np.ndarray, K: np.ndarray, s
         z[~valid] = 0.0
     H, W = z.shape
     k = int(step_px)
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T
+    rays = geometry.pixel_rays(K, shape=(H, W))
     P = rays * z[..., None]
 
     def shifted(a, dy, dx, fill):
@@ -114,8 +119,7 @@ def dsine_normals(model: OnnxModel, image: np.ndarray, K: np.ndarray, where: str
     n_dsine = out[:, t:t + H, left:left + W].transpose(1, 2, 0).astype(np.float64)
     norm = np.linalg.norm(n_dsine, axis=-1)
     n = -n_dsine / np.maximum(norm, 1e-12)[..., None]  # DSINE points away from the camera
-    ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
-    rays = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T
+    rays = geometry.pixel_rays(K, shape=(H, W))
     ok = (np.abs(norm - 1.0) < 0.1) & (np.sum(n * rays, -1) < 0)
     if not ok.any():
         raise NormalError(f"{model.path}: DSINE output for {where} has no usable normal (not unit length or facing away)")

@@ -6,12 +6,12 @@ docs/evaluation.md). The mesh must be in the DTU world frame, in millimetres.
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
 from pipeline.config import DataConfig, EvaluateConfig, load_params, section
 from pipeline.data import dtu
+from pipeline.errors import MissingInputError
 from pipeline.evaluation import dtu_eval, gt
 
 
@@ -31,14 +31,12 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
-    cfg = section(EvaluateConfig, "evaluate", params)
-    if args.cull is not None:
-        cfg = dataclasses.replace(cfg, cull_views=args.cull)
-    views = args.views if args.views is not None else section(DataConfig, "data", params).views
+    cfg = section(EvaluateConfig, "evaluate", params, {"cull_views": args.cull})
+    views = section(DataConfig, "data", params, {"views": args.views}).views
 
     scene = Path(args.scene)
     if not scene.is_dir():
-        raise FileNotFoundError(f"{scene}: scene folder not found")
+        raise MissingInputError(f"{scene}: scene folder not found")
     scan_id = args.scan_id if args.scan_id is not None else dtu.read_meta(scene).get("scan_id")
     ground = gt.read_ground_truth(args.gt or scene / "gt", scan_id)
     print(f"[evaluate] GT scan {ground.scan_id}: {len(ground.points_mm)} points, ObsMask {ground.obs_mask.shape} "

@@ -11,13 +11,11 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.atomic import atomic_dir
 from pipeline.config import InitConfig, load_params, section
 from pipeline.data.dtu import load_scene
-from pipeline.data.scene import Scene, SceneError
-from pipeline.init import BACKEND_MODULES, run_backend
+from pipeline.data.scene import SceneError, check_scene
+from pipeline.init import run_backend
 from pipeline.init.io import InitResult, depth_path, write_depth, write_ply
 
 
@@ -31,18 +29,6 @@ def peak_rss_mb() -> float | None:
     except OSError:
         pass
     return None
-
-
-def check_scene(scene: Scene) -> None:
-    """Reject scenes the backends cannot use; the message names the scene folder."""
-    where = scene.source or scene.name
-    if not np.all(np.isfinite(scene.images)):
-        raise SceneError(f"{where}: images have non-finite values")
-    for name, arr in (("K", scene.K), ("world_to_cam", scene.world_to_cam), ("norm_to_world", scene.norm_to_world)):
-        if not np.all(np.isfinite(arr)):
-            raise SceneError(f"{where}: {name} has non-finite values")
-    if scene.num_views < 2:
-        raise SceneError(f"{where}: init needs at least 2 views, got {scene.num_views}")
 
 
 def write_outputs(out_dir: str | Path, result: InitResult, info: dict) -> Path:
@@ -61,7 +47,7 @@ def run_init(scene_dir: str | Path, out_dir: str | Path, cfg: InitConfig) -> tup
     the facts written to init.json (including wall time and peak RSS of this process)."""
     t0 = time.perf_counter()
     scene = load_scene(scene_dir, view_ids=None)
-    check_scene(scene)
+    check_scene(scene, min_views=2, needed_by="init")
     result = run_backend(cfg.backend, scene, cfg)
     if len(result.cloud) == 0:
         raise SceneError(f"{scene_dir}: the {cfg.backend} backend found no points")
@@ -82,19 +68,14 @@ def run_init(scene_dir: str | Path, out_dir: str | Path, cfg: InitConfig) -> tup
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", required=True, help="prepared scene folder (DTU layout)")
-    p.add_argument("--backend", choices=sorted(BACKEND_MODULES), default=None, help="default: init.backend")
+    p.add_argument("--backend", choices=InitConfig.BACKENDS, default=None, help="default: init.backend")
     p.add_argument("--model", default=None, help="ONNX model file (mast3r backend); default: init.mast3r.model")
     p.add_argument("--out-dir", required=True, help="output folder (points.ply, depth/, init.json)")
     p.add_argument("--params", default=None, help="params.yaml to read `init` from (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:
-    params = load_params(args.params)
-    cfg = section(InitConfig, "init", params)
-    if args.backend:
-        cfg.backend = args.backend
-    if args.model:
-        cfg.mast3r.model = args.model
+    cfg = section(InitConfig, "init", load_params(args.params), {"backend": args.backend, "mast3r.model": args.model})
     _, info = run_init(args.scene, args.out_dir, cfg)
     print(f"init {cfg.backend}: {info['num_points']} points in {info['time_s']} s "
           f"(peak RSS {info['peak_rss_mb']} MB) -> {args.out_dir}")

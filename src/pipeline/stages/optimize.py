@@ -38,11 +38,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     params = load_params(args.params)
-    cfg = section(OptimizeConfig, "optimize", params)
-    cfg = replace(cfg, **{k: v for k, v in (("iterations", args.iterations), ("backend", args.backend)) if v is not None})
+    cfg = section(OptimizeConfig, "optimize", params, {"iterations": args.iterations, "backend": args.backend})
     loss = section(LossConfig, "loss", params)
     out_dir = Path(args.out_dir)
     name = out_dir.name

@@ -14,12 +14,12 @@ import resource
 import time
 from pathlib import Path
 
-import numpy as np
-
 from pipeline.atomic import atomic_dir
 from pipeline.config import LossConfig, PriorsConfig, load_params, section
 from pipeline.data.dtu import load_scene
-from pipeline.data.scene import Scene, SceneError
+from pipeline.data.scene import check_scene
+from pipeline.errors import ConfigError
+from pipeline.init.io import load_init_depths
 from pipeline.onnx_models import DSINE_CONTRACT, VISMVSNET_FEATURES_CONTRACT, load_onnx
 from pipeline.priors import features as feat
 from pipeline.priors import normals as nrm
@@ -38,40 +38,6 @@ def effective_backends(cfg: PriorsConfig, loss: LossConfig) -> tuple[str, str]:
     return (cfg.normals if loss.lambda_nor > 0 else "none", cfg.features if loss.lambda_gcf > 0 else "none")
 
 
-def check_scene(scene: Scene) -> None:
-    where = scene.source or scene.name
-    if not np.all(np.isfinite(scene.images)):
-        raise SceneError(f"{where}: images have non-finite values")
-    if not (np.all(np.isfinite(scene.K)) and np.all(np.isfinite(scene.world_to_cam))):
-        raise SceneError(f"{where}: cameras have non-finite values")
-
-
-def load_init_depths(init_dir: Path | None, scene: Scene) -> list:
-    """The init stage's depth maps of every view, checked against the scene's cameras."""
-    from pipeline.init.io import depth_path, read_depth
-
-    if init_dir is None:
-        raise SceneError("priors.normals = default needs the init stage's depth maps: pass --init-dir")
-    out = []
-    for v, K, T in zip(scene.view_ids, scene.K, scene.world_to_cam):
-        path = depth_path(init_dir, v)
-        if not path.is_file():
-            raise SceneError(
-                f"{path}: missing depth map for view {v} (default normals need a depth-based init backend, "
-                "mvs or mast3r; or set priors.normals to dsine or none)"
-            )
-        d = read_depth(path)
-        if d.depth_mm.shape != (scene.height, scene.width):
-            raise SceneError(f"{path}: depth map is {d.depth_mm.shape[1]}x{d.depth_mm.shape[0]}, "
-                             f"scene {scene.source} is {scene.width}x{scene.height}")
-        if not (np.allclose(d.K, K, rtol=1e-6, atol=1e-6) and np.allclose(d.world_to_cam, T, rtol=1e-6, atol=1e-6)):
-            raise SceneError(f"{path}: camera differs from view {v} of {scene.source} (stale init output?)")
-        if not d.valid.any():
-            raise SceneError(f"{path}: no valid depth pixel")
-        out.append(d)
-    return out
-
-
 def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, loss: LossConfig,
                init_dir: str | Path | None = None) -> dict:
     """Compute the configured priors of every view and write them atomically; returns
@@ -82,7 +48,12 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
     scene = load_scene(scene_dir, view_ids=None)
     check_scene(scene)
     # Everything that can fail on bad input is checked before any output is written.
-    depths = load_init_depths(Path(init_dir) if init_dir else None, scene) if normals_backend == "default" else None
+    depths = None
+    if normals_backend == "default":
+        if init_dir is None:
+            raise ConfigError("priors.normals = default needs the init stage's depth maps: pass --init-dir "
+                              "(or set priors.normals to dsine or none)")
+        depths = load_init_depths(init_dir, scene, needed_by="priors.normals = default")
     dsine = load_onnx(cfg.dsine_model, DSINE_CONTRACT) if normals_backend == "dsine" else None
     vis = load_onnx(cfg.vismvsnet_model, VISMVSNET_FEATURES_CONTRACT) if features_backend == "vismvsnet" else None
     timings = {"load_s": round(time.perf_counter() - t0, 3), "normals_s": 0.0, "features_s": 0.0}
@@ -96,10 +67,7 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
             if normals_backend != "none":
                 if normals_backend == "default":
                     d = depths[i]
-                    n, ok = nrm.normals_from_depth(
-                        d.depth_mm, d.valid, scene.K[i], step_px=cfg.normal_step_px,
-                        smooth_sigma_px=cfg.normal_smooth_sigma_px, smooth_sigma_mm=cfg.normal_smooth_sigma_mm,
-                        max_slant_deg=cfg.normal_max_slant_deg, where=where)
+                    n, ok = nrm.normals_from_depth(d.depth_mm, d.valid, scene.K[i], cfg, where=where)
                 else:
                     n, ok = nrm.dsine_normals(dsine, scene.images[i], scene.K[i], where=where)
                 write_normals(normals_path(tmp, v), NormalPrior(v, n, ok, normals_backend))
@@ -151,11 +119,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
-    cfg = section(PriorsConfig, "priors", params)
+    cfg = section(PriorsConfig, "priors", params, {key: getattr(args, key) for key in
+                                                   ("normals", "features", "dsine_model", "vismvsnet_model")})
     loss = section(LossConfig, "loss", params)
-    for key in ("normals", "features", "dsine_model", "vismvsnet_model"):
-        if getattr(args, key) is not None:
-            setattr(cfg, key, getattr(args, key))
     info = run_priors(args.scene, args.out_dir, cfg, loss, init_dir=args.init_dir)
     print(f"priors: normals {info['normals']} (lambda_nor {loss.lambda_nor}), features {info['features']} "
           f"(lambda_gcf {loss.lambda_gcf}) for views {info['views']} in {info['time_s']} s "

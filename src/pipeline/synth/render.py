@@ -12,6 +12,7 @@ import numpy as np
 import open3d as o3d
 
 from pipeline import geometry
+from pipeline.meshing.raycast import MeshCaster
 from pipeline.synth import shapes, texture
 
 BACKGROUND_RGB = (0.03, 0.03, 0.03)  # DTU's black backdrop
@@ -79,11 +80,8 @@ def raycast_depth(vertices_mm: np.ndarray, triangles: np.ndarray, K: np.ndarray,
                   width: int, height: int) -> np.ndarray:
     """Exact camera-z depth (mm, ``(height, width)`` float64) of a world-frame mesh in one
     view, ``np.nan`` where the pixel-centre ray hits nothing."""
-    rc = o3d.t.geometry.RaycastingScene()
-    rc.add_triangles(np.asarray(vertices_mm, np.float32), np.asarray(triangles, np.uint32))
-    origin, A = pixel_to_ray(K, world_to_cam)
-    t = rc.cast_rays(o3d.core.Tensor(grid_rays(origin, A, width, height)))["t_hit"].numpy()
-    return np.where(np.isfinite(t), t, np.nan).astype(np.float64).reshape(height, width)
+    depth = MeshCaster(vertices_mm, triangles).cast(K, world_to_cam, height, width).depth_mm
+    return np.where(np.isfinite(depth), depth, np.nan)
 
 
 @numba.njit(cache=True, parallel=True)
