@@ -10,7 +10,7 @@ import numpy as np
 
 from init_scene import make_scene
 from pipeline import geometry
-from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.config import LossConfig, OptimizeConfig, PriorsConfig
 from pipeline.init.io import PointCloud
 from pipeline.priors import features as feat
 from pipeline.priors import normals as nrm
@@ -25,8 +25,8 @@ def tiny_problem(tmp: Path, width: int = 64, height: int = 48, stride: int = 3):
     for i, (K, T, z) in enumerate(zip(scene.K, scene.world_to_cam, depths)):
         valid = np.isfinite(z)
         depth = np.where(valid, z, 0.0)
-        n_cam, ok = nrm.normals_from_depth(depth, valid, K, step_px=1, smooth_sigma_px=0.0, smooth_sigma_mm=1.0,
-                                           max_slant_deg=85.0, where="test")
+        n_cam, ok = nrm.normals_from_depth(depth, valid, K, PriorsConfig(normal_step_px=1, normal_smooth_sigma_px=0.0,
+                                                                         normal_max_slant_deg=85.0), where="test")
         write_normals(normals_path(priors, scene.view_ids[i]), NormalPrior(scene.view_ids[i], n_cam, ok, "default"))
         f = feat.default_features(scene.images[i], patch=3, scales=(1,), min_contrast=0.002, where="test")
         write_features(features_path(priors, scene.view_ids[i]),

@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
     "optimize": ("pipeline.stages.optimize", "train 2D Gaussian surfels with the GCGS losses"),
     "mesh": ("pipeline.stages.mesh", "TSDF mesh (mm) of depth rendered from trained surfels"),
+    "score": ("pipeline.stages.score", "per-scene metrics of the method (Chamfer or held-out views, cost)"),
     "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
     "bench-raster": ("pipeline.rasterizer.bench", "benchmark the surfel rasterizer"),
 }

@@ -20,8 +20,9 @@ from pipeline.rasterizer import Camera, rasterize
 
 def virtual_world_to_cams(world_to_cam: np.ndarray, centre_mm: np.ndarray, per_pair: int) -> np.ndarray:
     """Cameras between each pair of input cameras: centres on the arc around ``centre_mm``
-    (spherical interpolation of the direction, linear in distance), orientations by quaternion
-    slerp; ``per_pair`` views strictly between each pair. ``(M, 4, 4)`` world mm -> camera."""
+    (spherical interpolation of the direction, linear in distance), each looking at
+    ``centre_mm`` with its image "down" axis from the slerp of the pair's orientations;
+    ``per_pair`` views strictly between each pair. ``(M, 4, 4)`` world mm -> camera."""
     from scipy.spatial.transform import Rotation, Slerp
 
     out = []
@@ -39,7 +40,11 @@ def virtual_world_to_cams(world_to_cam: np.ndarray, centre_mm: np.ndarray, per_p
                 else:
                     d = (np.sin((1 - t) * omega) * ca / ra + np.sin(t * omega) * cb / rb) / np.sin(omega)
                 c = centre_mm + d * ((1 - t) * ra + t * rb)
-                R = slerp([t]).as_matrix()[0]
+                z = -d  # forward: towards the centre
+                y = slerp([t]).as_matrix()[0][1]
+                y = y - (y @ z) * z
+                y /= np.linalg.norm(y)
+                R = np.stack([np.cross(y, z), y, z])
                 T = np.eye(4)
                 T[:3, :3] = R
                 T[:3, 3] = -R @ c

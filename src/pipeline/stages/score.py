@@ -1,0 +1,41 @@
+"""``gcgs score``: the per-scene metrics of the method (the ``evaluate`` stage): DTU Chamfer
+where the scene has ground truth, else held-out-view IoU / PSNR, plus training time, time
+per iteration, surfel count and peak memory -> ``reports/metrics/NAME.json``."""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from pipeline import atomic
+from pipeline.config import DataConfig, EvaluateConfig, OptimizeConfig, SceneEntry, from_dict, load_params, section
+from pipeline.errors import ConfigError
+from pipeline.evaluation.scene_metrics import scene_metrics
+from pipeline.optimize.train import resolve_backend
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", help="scene name (a key of params `scenes`: its src and gt)")
+    p.add_argument("--scene", required=True, help="prepared scene folder")
+    p.add_argument("--surfels-dir", required=True, help="optimize stage output")
+    p.add_argument("--mesh-dir", required=True, help="mesh stage output")
+    p.add_argument("--train-timing", required=True, help="the optimize stage's timing JSON")
+    p.add_argument("--out", required=True, help="metrics JSON to write")
+    p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
+
+
+def run(args: argparse.Namespace) -> int:
+    params = load_params(args.params)
+    scenes = params.get("scenes") or {}
+    if args.name not in scenes:
+        raise ConfigError(f"scene {args.name!r} is not in params `scenes` ({sorted(scenes)})")
+    entry = from_dict(SceneEntry, scenes[args.name], where=f"scenes.{args.name}")
+    opt = section(OptimizeConfig, "optimize", params)
+    metrics = scene_metrics(args.name, args.scene, entry.src, entry.gt, args.surfels_dir, args.mesh_dir,
+                            args.train_timing, section(EvaluateConfig, "evaluate", params), opt,
+                            section(DataConfig, "data", params).views, resolve_backend(opt.backend))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    atomic.write_text(args.out, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    summary = metrics.get("chamfer") or {k: metrics["heldout"][k] for k in ("iou_mean", "hull_iou_mean", "psnr_masked_db_mean")}
+    print(f"score {args.name}: {json.dumps(summary)} -> {args.out}")
+    return 0

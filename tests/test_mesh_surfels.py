@@ -1,0 +1,82 @@
+"""Mesh from trained surfels, virtual views, and the held-out scores (visual hull reference)."""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from init_scene import distance_to_spheres
+from optimize_scene import tiny_config, tiny_problem
+from pipeline import geometry
+from pipeline.config import MeshConfig
+from pipeline.evaluation.heldout import heldout_scores, iou, masked_psnr, visual_hull_silhouettes
+from pipeline.meshing.surfels import mesh_from_surfels, virtual_world_to_cams
+from pipeline.meshing.tsdf import FusionError
+from pipeline.optimize import init_from_cloud, make_views, train
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory):
+    scene, cloud, priors = tiny_problem(tmp_path_factory.mktemp("mesh"), width=80, height=60, stride=2)
+    cfg, loss = tiny_config(iterations=30, surface_alpha=0.05)
+    cfg = replace(cfg, densify=replace(cfg.densify, reset_every=0, grad_threshold=1e-3))
+    params = init_from_cloud(cloud, scene, cfg)
+    res = train(params, make_views(scene, priors, cfg, loss), cfg, loss)
+    return scene, res.params
+
+
+def test_mesh_lies_on_the_surface(trained):
+    scene, params = trained
+    mesh, info = mesh_from_surfels(params, scene, MeshConfig(voxel_norm=0.01, trunc_norm=0.04))
+    assert info["triangles_kept"] > 100 and info["views_input"] == 3
+    d = distance_to_spheres(mesh.vertices_mm, scene)
+    voxel_mm = 0.01 * scene.norm_scale_mm
+    assert np.median(d) < voxel_mm, (np.median(d), voxel_mm)
+
+
+def test_transparent_model_is_an_error_not_an_empty_mesh(trained):
+    scene, params = trained
+    clear = replace(params, opacity_logits=torch.full_like(params.opacity_logits, -20.0))
+    with pytest.raises(FusionError, match="no depth above alpha"):
+        mesh_from_surfels(clear, scene, MeshConfig())
+
+
+def test_virtual_views_lie_between_the_inputs():
+    rng = np.random.default_rng(0)
+    T = []
+    centre = np.array([1.0, 2.0, 3.0])
+    for _ in range(3):
+        c = centre + rng.normal(size=3) * 0 + 500 * (v := rng.normal(size=3)) / np.linalg.norm(v)
+        z = (centre - c) / np.linalg.norm(centre - c)
+        x = np.cross([0.0, 1.0, 0.0], z)
+        x /= np.linalg.norm(x)
+        R = np.stack([x, np.cross(z, x), z])
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, -R @ c
+        T.append(M)
+    T = np.stack(T)
+    V = virtual_world_to_cams(T, centre, 2)
+    assert V.shape == (3 * 2, 4, 4)
+    for M in V:
+        R = M[:3, :3]
+        assert np.allclose(R @ R.T, np.eye(3), atol=1e-9)
+        c = geometry.camera_center(M)
+        assert abs(np.linalg.norm(c - centre) - 500) < 1e-6  # on the sphere of the inputs
+        assert R[2] @ (centre - c) / 500 > 0.99  # looking at the object
+
+
+def test_visual_hull_of_the_inputs_reprojects_onto_their_masks(trained):
+    scene, params = trained
+    sil = visual_hull_silhouettes(scene, scene, samples=96)
+    for s, m in zip(sil, scene.masks):
+        assert iou(s, m) > 0.97
+
+
+def test_heldout_scores_on_training_views(trained):
+    scene, params = trained
+    r = heldout_scores(params, scene, scene)
+    assert r["views"] == 3 and 0 <= r["iou_mean"] <= 1 and r["psnr_masked_db_mean"] > 15
+    assert iou(np.ones((2, 2), bool), np.zeros((2, 2), bool)) == 0.0
+    assert masked_psnr(np.zeros((1, 2, 3)), np.full((1, 2, 3), 0.1), np.array([[True, False]])) == pytest.approx(20.0)
