@@ -19,7 +19,7 @@ from pipeline.data.dtu import load_scene
 from pipeline.data.scene import SceneError
 from pipeline.init.io import read_depth
 from pipeline.meshing import tsdf
-from pipeline.stages.init import peak_rss_mb
+from pipeline.measure import peak_rss_mb
 
 
 def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, voxel_norm: float = 0.004, trunc_norm: float = 0.016,
