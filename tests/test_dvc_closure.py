@@ -126,6 +126,8 @@ def test_every_stage_runs_a_pipeline_module():
 @pytest.mark.parametrize("stage", sorted(STAGES))
 def test_stage_deps_cover_the_code_it_imports(stage):
     modules, deps = STAGES[stage]
+    repeated = sorted({d for d in deps if deps.count(d) > 1})
+    assert not repeated, f"dvc.yaml stage {stage} lists deps twice: {repeated}"
     closure = set().union(*(import_closure(m) for m in modules))
     missing = uncovered(closure, deps)
     assert not missing, f"dvc.yaml stage {stage} does not list code its command imports: {missing}"

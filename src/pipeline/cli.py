@@ -18,8 +18,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "baseline": ("pipeline.stages.baseline", "one scene's init clouds of every backend and MVS+TSDF mesh vs GT, timed"),
     "baseline-report": ("pipeline.stages.baseline_report", "combine the per-scene baseline reports into one table"),
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
-    "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
-    "bench-raster": ("pipeline.rasterizer.bench", "benchmark the surfel rasterizer"),
+    "bench-eval": ("pipeline.benchmarks.evaluation", "benchmark the Chamfer evaluation"),
+    "bench-raster": ("pipeline.benchmarks.rasterizer", "benchmark the surfel rasterizer"),
+    "bench-priors": ("pipeline.benchmarks.priors", "benchmark the priors stage and the prior losses"),
+    "bench-gcf": ("pipeline.benchmarks.gcf_offset", "GCF loss against a depth offset (minimum at the true depth?)"),
 }
 
 

@@ -156,6 +156,6 @@ def provenance() -> dict:
                                 check=False).stdout.strip()
     except OSError:
         commit = ""
-    return {"commit": commit or "unknown", "machine": f"{os.cpu_count()} CPU cores",
-            "cpu": platform.processor() or platform.machine(), "load_average_1min": round(os.getloadavg()[0], 2),
+    return {"commit": commit or "unknown", "cpu_cores": os.cpu_count(), "cpu": platform.processor() or platform.machine(),
+            "load_average_1min": round(os.getloadavg()[0], 2),
             "python": platform.python_version(), "date": time.strftime("%Y-%m-%d %H:%M:%S")}

@@ -10,7 +10,7 @@ def _fmt(x, nd=3) -> str:
 def markdown(reports: dict[str, dict], notes: list[str] = ()) -> str:
     """The combined table of several scenes' reports (name -> report)."""
     commits = sorted({r.get("commit", "?") for r in reports.values()})
-    machines = sorted({r.get("machine", "?") for r in reports.values()})
+    machines = sorted({f"{r['cpu_cores']} CPU cores" if "cpu_cores" in r else "?" for r in reports.values()})
     lines = ["# Baseline: init point clouds and the classical MVS + TSDF mesh", "",
              f"Generated per scene by `gcgs baseline` (`reports/baseline/SCENE.json`; stage `baseline`) at commit "
              f"{', '.join(f'`{c}`' for c in commits)} on {'; '.join(machines)}, combined by `gcgs baseline-report`. "
