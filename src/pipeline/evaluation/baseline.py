@@ -1,4 +1,5 @@
-"""The classical baseline of one scene (docs/init.md), and the table of several.
+"""The classical baseline of one scene (docs/init.md); the table of several scenes is in
+:mod:`pipeline.evaluation.baseline_table`.
 
 The init stage has already run the default backend (``init.backend``): its cloud and depth
 maps are read from its folder, its time and peak memory from its ``init.json``. What no
@@ -22,46 +23,16 @@ from typing import Any
 from pipeline import atomic
 from pipeline.config import EvaluateConfig, InitConfig
 from pipeline.data import dtu
-from pipeline.data.scene import SceneError
-from pipeline.evaluation import dtu_eval, gt
+from pipeline.evaluation import gt
+from pipeline.evaluation.baseline_steps import backend_cloud, mesh_chamfer, tsdf_mesh
 from pipeline.evaluation.clouds import cloud_metrics
-from pipeline.init import BACKEND_MODULES, run_backend
-from pipeline.init.io import read_ply, write_ply
+from pipeline.init import BACKEND_MODULES
+from pipeline.init.io import read_ply
 from pipeline.measure import Usage, run_in_child
-from pipeline.meshing import tsdf
-from pipeline.stages.tsdf import mesh_from_init  # moves to pipeline.meshing (issue 8)
 
 NO_MAST3R_MODEL = ("not run: no MASt3R ONNX model file (weights cannot be downloaded here; see docs/init.md "
                    "for the export script)")
 MESH, MESH_METRICS = "mvs_tsdf.ply", "mvs_tsdf_metrics.json"
-
-
-# The steps; each runs in a child process, so each is a module-level function.
-def backend_cloud(scene_dir: Path, backend: str, cfg: InitConfig, out_ply: Path) -> dict:
-    """Run init ``backend`` on the scene and write its cloud; returns its facts."""
-    scene = dtu.load_scene(scene_dir, view_ids=None)
-    result = run_backend(backend, scene, cfg)
-    if len(result.cloud) == 0:
-        raise SceneError(f"{scene_dir}: the {backend} backend found no points")
-    write_ply(out_ply, result.cloud)
-    return {"backend": backend, "num_points": len(result.cloud), **result.info}
-
-
-def tsdf_mesh(init_dir: Path, scene_dir: Path, out_ply: Path) -> dict:
-    """TSDF-fuse the init folder's depth maps and write the mesh; returns its facts."""
-    mesh, info = mesh_from_init(init_dir, scene_dir)
-    tsdf.write_mesh(out_ply, mesh)
-    return info
-
-
-def mesh_chamfer(mesh_ply: Path, scene_dir: Path, gt_dir: Path, cfg: EvaluateConfig, views: list[int],
-                 out_json: Path) -> None:
-    """DTU Chamfer distance of the mesh, culled by ``views``' masks, written to ``out_json``."""
-    ground = gt.read_ground_truth(gt_dir, dtu.read_meta(Path(scene_dir)).get("scan_id"))
-    cull = dtu_eval.load_cull_views(scene_dir, cfg.cull_views, views)
-    vertices, triangles = gt.read_mesh(mesh_ply)
-    metrics = dtu_eval.evaluate_mesh(vertices, triangles, ground, cfg, views=cull, log=None, name=str(mesh_ply))
-    dtu_eval.write_metrics(out_json, {**metrics, "mesh": str(mesh_ply), "scene": str(scene_dir), "gt": str(ground.root)})
 
 
 def _figures(usage: Usage) -> dict:
