@@ -59,10 +59,11 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     assert "Running stage" not in second
 
     # One scene's input changes: only that scene's stages (and the combined table) rerun.
-    image = tiny_repo / "data/raw/dtu/scan24/image/000024.png"
-    pixels = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    # (A mask: the synthetic scenes render into scan24's cameras and read its images.)
+    mask = tiny_repo / "data/raw/dtu/scan24/mask/024.png"
+    pixels = cv2.imread(str(mask), cv2.IMREAD_UNCHANGED)
     pixels[:40, :40] = 255 - pixels[:40, :40]  # survives the resize to 160x120
-    assert cv2.imwrite(str(image), pixels)
+    assert cv2.imwrite(str(mask), pixels)
     third = _dvc(tiny_repo, "repro")
     for stage in ("prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report"):
         assert f"Running stage '{stage}'" in third
