@@ -1,10 +1,12 @@
 """The DVC pipeline itself, on a tiny configuration: it runs end to end, a second
 `dvc repro` does nothing, and a change reruns only the stages that read it."""
+import json
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
+import cv2
 import pytest
 import yaml
 
@@ -31,7 +33,9 @@ def tiny_repo(tmp_path_factory) -> Path:
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["synth"].update(scenes=["synth_relief"], width=160, height=120)
     params["data"].update(width=160, height=120)
-    params["scenes"] = {"synth_relief": {"src": "data/synth/synth_relief", "gt": "data/synth/synth_relief/gt"}}
+    # Two scenes, one without ground truth, so that a change to one shows what reruns.
+    params["scenes"] = {"synth_relief": {"src": "data/synth/synth_relief", "gt": "data/synth/synth_relief/gt"},
+                        "scan24": {"src": "data/raw/dtu/scan24", "gt": None}}
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     _dvc(root, "init", "-q")
@@ -41,29 +45,44 @@ def tiny_repo(tmp_path_factory) -> Path:
 def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     first = _dvc(tiny_repo, "repro")
     for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
-                  "baseline"):
+                  "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report"):
         assert f"Running stage '{stage}'" in first
     assert (tiny_repo / "data/init/synth_relief/points.ply").is_file()
     assert (tiny_repo / "data/scenes/synth_relief/cameras_sphere.npz").is_file()
-    assert "synth_relief" in (tiny_repo / "reports/baseline.md").read_text()
+    relief = json.loads((tiny_repo / "reports/baseline/synth_relief.json").read_text())
+    assert relief["backends"]["mvs"]["cloud"]["points"] > 0 and relief["evaluate"]["status"] == "ok"
+    assert (tiny_repo / "data/baseline/synth_relief/mvs_tsdf.ply").is_file()
+    table = (tiny_repo / "reports/baseline.md").read_text()
+    assert "| synth_relief | mvs |" in table and "| scan24 | no GT |" in table
 
     second = _dvc(tiny_repo, "repro")
     assert "Running stage" not in second
 
+    # One scene's input changes: only that scene's stages (and the combined table) rerun.
+    # (A mask: the synthetic scenes render into scan24's cameras and read its images.)
+    mask = tiny_repo / "data/raw/dtu/scan24/mask/024.png"
+    pixels = cv2.imread(str(mask), cv2.IMREAD_UNCHANGED)
+    pixels[:40, :40] = 255 - pixels[:40, :40]  # survives the resize to 160x120
+    assert cv2.imwrite(str(mask), pixels)
+    third = _dvc(tiny_repo, "repro")
+    for stage in ("prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report"):
+        assert f"Running stage '{stage}'" in third
+    for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "baseline@synth_relief"):
+        assert f"Running stage '{stage}'" not in third
+    assert json.loads((tiny_repo / "reports/baseline/synth_relief.json").read_text()) == relief
+
     params = yaml.safe_load((tiny_repo / "params.yaml").read_text())
     params["data"]["width"], params["data"]["height"] = 120, 90
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
-    third = _dvc(tiny_repo, "repro")
-    assert "Running stage 'prepare@synth_relief'" in third
-    assert "Running stage 'synth@synth_relief'" not in third
+    status = _dvc(tiny_repo, "status")
+    assert "prepare@synth_relief" in status and "prepare@scan24" in status
+    assert "synth@synth_relief" not in status
 
 
 def test_committed_lock_matches_code_and_params():
     """dvc.lock records the code and params each stage last ran with: a change to a stage's
     code or params committed without `dvc repro` shows here. Dependencies that git does not
     track (other stages' data outputs, absent in a fresh clone) are left to those stages."""
-    import json
-
     tracked = subprocess.run(["git", "ls-files"], cwd=REPO, capture_output=True, text=True, check=True).stdout.split()
 
     def is_code(path: str) -> bool:

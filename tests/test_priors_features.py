@@ -71,7 +71,7 @@ def test_gcf_minimum_at_true_depth(bundled_scan):
     """Eq. 4-9 on the default features: argmin over depth offsets within 1 mm of 0 on a
     rendered relief plate seen by scan24's cameras 23/24/33 at 200x150, with a
     different exposure per view."""
-    from pipeline.priors.gcf_check import relief_curve
+    from pipeline.benchmarks.gcf_offset import relief_curve
 
     deltas = np.arange(-10.0, 10.01, 1.0)
     curve, _ = relief_curve(bundled_scan, 200, 150, deltas)
@@ -85,7 +85,7 @@ def test_gcf_minimum_at_true_depth(bundled_scan):
 def test_gcf_minimum_on_a_synth_scene(bundled_scan):
     """The same on `gcgs synth`'s synth_relief (one ray per pixel, no anti-aliasing) at
     200x150, where a pixel spans ~1.9 mm: argmin within 2 mm."""
-    from pipeline.priors.gcf_check import synth_curve
+    from pipeline.benchmarks.gcf_offset import synth_curve
 
     deltas = np.arange(-10.0, 10.01, 1.0)
     curve, _ = synth_curve("synth_relief", bundled_scan, 200, 150, deltas)

@@ -9,10 +9,10 @@ import pytest
 import yaml
 
 from onnx_helpers import FakeVisMVSNet, export_fake_dsine, export_fake_vismvsnet
+from relief_scene import write_relief_scene
 from pipeline import cli
 from pipeline.config import PARAMS_PATH
 from pipeline.data import dtu
-from pipeline.init.io import DepthMap, depth_path, write_depth
 from pipeline.priors.io import features_path, normals_path, read_features, read_normals
 
 W, H = 80, 60
@@ -23,18 +23,8 @@ VIEWS = (23, 24, 33)
 def setup(tmp_path_factory, bundled_scan):
     """A rendered relief scene in the DTU layout, its ground-truth depth as the init
     output, and the two fake ONNX models."""
-    from pipeline.priors.raycast import textured_relief_scene
-
     root = tmp_path_factory.mktemp("priors")
-    scan = dtu.load_scene(bundled_scan, view_ids=list(VIEWS), resolution=(W, H), with_masks=False)
-    sc = textured_relief_scene(scan.K, scan.world_to_cam, W, H, scan.norm_to_world[:3, 3])
-    scene_dir = dtu.write_scene(root / "scene", images=dict(zip(VIEWS, sc.images)), K=dict(zip(VIEWS, sc.K)),
-                                world_to_cam=dict(zip(VIEWS, sc.world_to_cam)), norm_to_world=scan.norm_to_world,
-                                meta={"name": "relief"})
-    init_dir = root / "init"
-    for v, K, T, d in zip(VIEWS, sc.K, sc.world_to_cam, sc.depth_mm):
-        ok = np.isfinite(d)
-        write_depth(depth_path(init_dir, v), DepthMap(v, np.where(ok, d, 0).astype(np.float32), ok.astype(np.float32), ok, K, T))
+    scene_dir, init_dir, sc = write_relief_scene(root, bundled_scan, VIEWS, W, H)
     return {
         "root": root, "scene": scene_dir, "init": init_dir, "gt": sc,
         "dsine": export_fake_dsine(root / "dsine.onnx"), "vis": export_fake_vismvsnet(root / "vis.onnx"),

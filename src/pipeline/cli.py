@@ -17,13 +17,16 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "evaluate": ("pipeline.stages.evaluate", "DTU Chamfer distance of a mesh (mm)"),
     "init": ("pipeline.stages.init", "initial point cloud of a scene (mvs, sfm, mast3r or random)"),
     "tsdf": ("pipeline.stages.tsdf", "TSDF-fuse an init folder's depth maps into a cleaned mesh (mm)"),
-    "baseline": ("pipeline.stages.baseline", "init clouds of every backend and the MVS+TSDF mesh vs GT, timed"),
+    "baseline": ("pipeline.stages.baseline", "one scene's init clouds of every backend and MVS+TSDF mesh vs GT, timed"),
+    "baseline-report": ("pipeline.stages.baseline_report", "combine the per-scene baseline reports into one table"),
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
     "optimize": ("pipeline.stages.optimize", "train 2D Gaussian surfels with the GCGS losses"),
     "mesh": ("pipeline.stages.mesh", "TSDF mesh (mm) of depth rendered from trained surfels"),
     "score": ("pipeline.stages.score", "per-scene metrics of the method (Chamfer or held-out views, cost)"),
-    "bench-eval": ("pipeline.evaluation.bench", "benchmark the Chamfer evaluation"),
-    "bench-raster": ("pipeline.rasterizer.bench", "benchmark the surfel rasterizer"),
+    "bench-eval": ("pipeline.benchmarks.evaluation", "benchmark the Chamfer evaluation"),
+    "bench-raster": ("pipeline.benchmarks.rasterizer", "benchmark the surfel rasterizer"),
+    "bench-priors": ("pipeline.benchmarks.priors", "benchmark the priors stage and the prior losses"),
+    "bench-gcf": ("pipeline.benchmarks.gcf_offset", "GCF loss against a depth offset (minimum at the true depth?)"),
 }
 
 

@@ -17,18 +17,7 @@ from pipeline.data.dtu import load_scene
 from pipeline.data.scene import SceneError, check_scene
 from pipeline.init import run_backend
 from pipeline.init.io import InitResult, depth_path, write_depth, write_ply
-
-
-def peak_rss_mb() -> float | None:
-    """This process's peak resident memory (MB) since its exec (Linux ``VmHWM``; the
-    rusage figure would include a parent's size from before the exec)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return round(int(line.split()[1]) / 1024.0, 1)
-    except OSError:
-        pass
-    return None
+from pipeline.measure import peak_rss_mb
 
 
 def write_outputs(out_dir: str | Path, result: InitResult, info: dict) -> Path:

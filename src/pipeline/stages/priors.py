@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import resource
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ from pipeline.data.dtu import load_scene
 from pipeline.data.scene import check_scene
 from pipeline.errors import ConfigError
 from pipeline.init.io import load_init_depths
+from pipeline.measure import peak_rss_mb
 from pipeline.onnx_models import DSINE_CONTRACT, VISMVSNET_FEATURES_CONTRACT, load_onnx
 from pipeline.priors import features as feat
 from pipeline.priors import normals as nrm
@@ -100,7 +100,7 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
             "config": dataclasses.asdict(cfg),
             **{k: round(v, 3) for k, v in timings.items()},
             "time_s": round(time.perf_counter() - t0, 3),
-            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+            "peak_rss_mb": peak_rss_mb(),
         }
         (tmp / "priors.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
     return info

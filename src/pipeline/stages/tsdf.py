@@ -11,7 +11,7 @@ import time
 
 from pipeline.config import MeshConfig, load_params, section
 from pipeline.meshing import tsdf
-from pipeline.stages.init import peak_rss_mb
+from pipeline.measure import peak_rss_mb
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

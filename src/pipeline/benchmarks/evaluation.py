@@ -4,27 +4,25 @@ The scene is a ball of ``--radius`` mm (default 110 mm: about 2.3 M GT points at
 the density of an official ``stl*_total.ply``), its GT written by
 :func:`pipeline.evaluation.gt.write_ground_truth`, three cameras with exact silhouette masks
 (800x600) for culling, and a reconstruction-like mesh: a ``--vertices`` UV sphere with
-smooth radial bumps (+-0.5 mm) and 0.1 mm noise. ``gcgs evaluate`` runs in a child process,
-so its wall time and peak resident memory are the command's own, imports and file reading
-included (numba kernels come from the on-disk cache that building the GT filled).
+smooth radial bumps (+-0.5 mm) and 0.1 mm noise. ``gcgs evaluate`` runs in a child process
+(:func:`pipeline.measure.run_in_child`), so its wall time and peak resident memory are the
+command's own, imports and file reading included (numba kernels come from the on-disk cache
+that building the GT filled).
 """
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
-from pipeline import geometry
+from pipeline import atomic, cli, geometry
 from pipeline.data import dtu
 from pipeline.evaluation import gt as gtmod
+from pipeline.measure import provenance, run_in_child
 
 REPORT_DIR = Path("reports/benchmarks")
 CENTRE = np.array([-28.0, -13.0, 641.0])  # scan24's object centre (DTU world, mm)
@@ -61,7 +59,7 @@ def silhouette_views(radius_mm: float, width: int = 800, height: int = 600, dist
     return out
 
 
-def build_scene(root: Path, radius_mm: float) -> None:
+def build_scene(root: Path, radius_mm: float, gt_vertices: int = 200_000) -> None:
     views = silhouette_views(radius_mm)
     S = np.eye(4)
     S[:3, :3] *= 1.2 * radius_mm
@@ -75,7 +73,7 @@ def build_scene(root: Path, radius_mm: float) -> None:
         masks={v: m for v, (_, _, m) in views.items()},
         meta={"name": "bench_ball", "scan_id": 2000},
     )
-    V, F = uv_sphere(radius_mm, 200_000)
+    V, F = uv_sphere(radius_mm, gt_vertices)
     plane = np.array([0.0, 0.0, -1.0, CENTRE[2] + 0.8 * radius_mm])  # cut the far cap
     gtmod.write_ground_truth(root / "gt", 2000, V, F, plane)
 
@@ -90,23 +88,21 @@ def bumpy_mesh(radius_mm: float, n_vertices: int, seed: int = 0) -> tuple[np.nda
 
 
 def _evaluate(mesh: Path, scene: Path, out: Path) -> tuple[float, float]:
-    """Run ``gcgs evaluate`` in a child; (wall seconds, the child's own peak RSS in MiB)."""
-    cmd = [sys.executable, "-m", "pipeline.cli", "evaluate", "--mesh", str(mesh), "--scene", str(scene),
-           "--views", "0", "1", "2", "--cull", "input", "--out", str(out)]
-    t = time.perf_counter()
-    child = subprocess.Popen(cmd)
-    _, status, usage = os.wait4(child.pid, 0)  # this child's rusage, not all children's
-    wall = time.perf_counter() - t
-    child.returncode = os.waitstatus_to_exitcode(status)
-    if child.returncode != 0:
-        raise subprocess.CalledProcessError(child.returncode, cmd)
-    return wall, usage.ru_maxrss / 1024  # KiB on Linux
+    """Run ``gcgs evaluate`` in a child; (wall seconds, the child's peak RSS in MB)."""
+    argv = ["evaluate", "--mesh", str(mesh), "--scene", str(scene), "--views", "0", "1", "2", "--cull", "input",
+            "--out", str(out)]
+    rc, usage = run_in_child(cli.main, argv)
+    if rc != 0:
+        raise RuntimeError(f"gcgs {' '.join(argv)} exited with {rc}")
+    return usage.wall_s, usage.peak_rss_mb
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--vertices", type=int, default=1_000_000, help="vertices of the evaluated mesh")
     p.add_argument("--radius", type=float, default=110.0, help="ball radius, mm (sets the GT density)")
     p.add_argument("--out-dir", default=str(REPORT_DIR), help="where evaluation.json/.md go")
+    p.add_argument("--gt-vertices", type=int, default=200_000, help="vertices of the GT sphere mesh (its points "
+                   "are sampled at 0.2 mm whatever this is)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -116,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         tmp = Path(tmp)
         print(f"[bench-eval] building GT (ball r={args.radius} mm) and scene ...", flush=True)
         t = time.perf_counter()
-        build_scene(tmp / "scene", args.radius)
+        build_scene(tmp / "scene", args.radius, args.gt_vertices)
         V, F = bumpy_mesh(args.radius, args.vertices)
         u = (V - CENTRE) / np.linalg.norm(V - CENTRE, axis=1, keepdims=True)
         # Building the GT ran the numba kernels with the evaluation's signatures, so their
@@ -134,23 +130,23 @@ def run(args: argparse.Namespace) -> int:
                          "stage_timings_s": m["timings_s"], "counts": m["counts"],
                          "accuracy_mm": m["accuracy_mm"], "completeness_mm": m["completeness_mm"]})
 
-    commit = subprocess.run(["git", "describe", "--always", "--dirty"], capture_output=True, text=True).stdout.strip()
+    facts = provenance()
+    commit = facts["commit"]
     report = {
         "benchmark": "gcgs evaluate (DTU Chamfer), one child process per run",
         "mesh_vertices": len(V),
         "mesh_triangles": len(F),
         "gt_points": runs[0]["counts"]["gt_points"],
         "runs": runs,
-        "cpu_cores": os.cpu_count(),
-        "load_average_1min": round(os.getloadavg()[0], 2),
-        "machine": platform.processor() or platform.machine(),
-        "python": platform.python_version(),
+        "cpu_cores": facts["cpu_cores"],
+        "load_average_1min": facts["load_average_1min"],
+        "machine": facts["cpu"],
+        "python": facts["python"],
         "commit": commit,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+        "date": facts["date"],
         "target": "< 60 s on 2 cores",
     }
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "evaluation.json").write_text(json.dumps(report, indent=2) + "\n")
+    atomic.write_text(out_dir / "evaluation.json", json.dumps(report, indent=2) + "\n")
     stages = list(runs[0]["stage_timings_s"])
     lines = [
         "# Evaluation benchmark (`gcgs bench-eval`)", "",
@@ -167,6 +163,6 @@ def run(args: argparse.Namespace) -> int:
         lines.append(f"| {r['mesh']} | {r['counts']['data_downsampled']} | {r['accuracy_mm']:.3f} | "
                      f"{r['completeness_mm']:.3f} | {r['wall_s']:.1f} | {r['peak_rss_mib']:.0f} | "
                      + " | ".join(f"{r['stage_timings_s'][k]:.2f}" for k in stages) + " |")
-    (out_dir / "evaluation.md").write_text("\n".join(lines) + "\n")
+    atomic.write_text(out_dir / "evaluation.md", "\n".join(lines) + "\n")
     print(json.dumps(report, indent=2))
     return 0

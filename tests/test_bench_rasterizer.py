@@ -1,7 +1,7 @@
 """Smoke test of ``gcgs bench-raster``'s measuring and reporting on a tiny case."""
 from __future__ import annotations
 
-from pipeline.rasterizer import bench
+from pipeline.benchmarks import rasterizer as bench
 
 
 def test_bench_case_records_both_backends_and_the_ratio():

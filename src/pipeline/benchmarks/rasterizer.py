@@ -8,28 +8,26 @@ backend and case) and ``rasterizer.md`` (a table with the cpu/reference speed ra
 ``pairs`` is the number of pixel-surfel pairs inside the support boxes (the work the
 scene defines, identical for both backends); ``pairs_per_s = pairs / (forward_s +
 backward_s)``. ``peak_mb`` is the peak resident memory above the level before the case
-(sampled every 2 ms, after returning freed heap pages to the OS), i.e. the extra memory
-of one forward + backward, starting with no pooled scratch buffers (``cpu.SCRATCH``); the
-timed runs that follow reuse the pool, as a training loop does.
+(:func:`pipeline.measure.measure`: the kernel's peak RSS, reset after returning freed heap
+pages to the OS), i.e. the extra memory of one forward + backward, starting with no pooled
+scratch buffers (``cpu.SCRATCH``); the timed runs that follow reuse the pool, as a training
+loop does.
 """
 from __future__ import annotations
 
 import argparse
-import ctypes
-import gc
 import json
 import os
 import platform
 import statistics
-import threading
 import time
 from pathlib import Path
 
 import numba
-import psutil
 import torch
 
 from pipeline import atomic
+from pipeline.measure import measure
 from pipeline.rasterizer import Surfels, rasterize
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu as cpu_backend
@@ -56,46 +54,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--reference-budget-gb", type=float, default=8.0, help="skip reference cases estimated above this memory"
     )
-
-
-def _trim_heap() -> None:
-    """Return freed heap pages to the OS (glibc), so that reused memory shows in RSS."""
-    try:
-        ctypes.CDLL("libc.so.6").malloc_trim(0)
-    except (OSError, AttributeError):
-        pass
-
-
-class _PeakRSS:
-    """Peak resident set size above the level at entry, sampled by a thread."""
-
-    def __init__(self, period: float = 0.002) -> None:
-        self.proc, self.period = psutil.Process(), period
-        self.peak = 0
-        self._stop = threading.Event()
-
-    def __enter__(self) -> _PeakRSS:
-        gc.collect()
-        _trim_heap()
-        self.base = self.proc.memory_info().rss
-        self.peak = self.base
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-        return self
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            self.peak = max(self.peak, self.proc.memory_info().rss)
-            time.sleep(self.period)
-
-    def __exit__(self, *exc) -> None:
-        self._stop.set()
-        self._thread.join()
-        self.peak = max(self.peak, self.proc.memory_info().rss)
-
-    @property
-    def mb(self) -> float:
-        return (self.peak - self.base) / 2**20
 
 
 def _leaves(s: Surfels) -> Surfels:
@@ -172,9 +130,9 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
     load_before = os.getloadavg()[0]
     fwd, bwd = [], []
     cpu_backend.SCRATCH.clear()  # the peak includes the cpu backend's scratch buffers
-    with _PeakRSS() as mem:
+    with measure() as mem:
         f, b = _time_once(s, cam, backend, cot)
-    peak = mem.mb
+    peak = mem.added_mb if mem.peak_is_own else None  # None: this kernel cannot reset the peak
     if backend == "cpu":  # the peak run doubles as warm-up; time fresh runs
         for _ in range(repeats):
             f, b = _time_once(s, cam, backend, cot)
@@ -190,7 +148,7 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
         best_total_s=round(min(x + y for x, y in zip(fwd, bwd)), 4),
         repeats=len(fwd),
         pairs_per_s=round(g.box_pixels / (f_med + b_med)),
-        peak_mb=round(peak, 1),
+        peak_mb=None if peak is None else round(peak, 1),
         kept_mb=round(
             (int(g.rec_tile_start[-1]) * K.R_SIZE * s.means.element_size() + g.num_pairs * (K.S_FIXED + 3) * 8
              + g.tile_list.nbytes + g.slot_of_emit.nbytes) / 2**20, 1),  # fmt: skip
@@ -296,7 +254,7 @@ def run(args: argparse.Namespace) -> int:
             print(
                 f"[{i}/{len(jobs)}] {backend:9s} {W}x{H} {N:>6d} surfels: forward {rec['forward_s']:.3f} s, "
                 f"backward {rec['backward_s']:.3f} s, {rec['pairs_per_s']:.3g} pairs/s, "
-                f"peak {rec['peak_mb']:.0f} MB, load {rec['load_avg_1min'][0]:.1f}",
+                f"peak {rec['peak_mb']} MB, load {rec['load_avg_1min'][0]:.1f}",
                 flush=True,
             )
     # --quick writes beside the full run's report instead of replacing it.

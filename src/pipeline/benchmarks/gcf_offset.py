@@ -1,9 +1,10 @@
-"""Does the GCF loss (Eq. 4-9) built on our features have its minimum at the true depth?
+"""``gcgs bench-gcf``: does the GCF loss (Eq. 4-9) built on our features have its minimum
+at the true depth?
 
 Renders a textured relief plate (and optionally the ``gcgs synth`` scenes) into real
 cameras (scan24 views 23/24/33 by default), takes the reference view's ground-truth depth,
-offsets it by delta (mm, camera z), and evaluates L_gcf with the default features. ``python -m pipeline.priors.gcf_check`` writes
-the curve to ``reports/priors/gcf_vs_depth_offset.{json,png}``.
+offsets it by delta (mm, camera z), and evaluates L_gcf with the default features. Writes
+the curves to ``OUT/gcf_vs_depth_offset.{json,png}`` (default ``reports/priors``).
 """
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipeline import atomic
 from pipeline.data import dtu
 from pipeline.losses import gcf_loss
 from pipeline.priors.features import default_features, feature_image_size
@@ -93,17 +95,21 @@ def summarise(deltas: np.ndarray, curve: np.ndarray, info: dict) -> dict:
             "loss_at_plus10": float(curve[-1])}
 
 
-def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cameras", default="data/raw/dtu/scan24")
     p.add_argument("--width", type=int, default=800)
     p.add_argument("--height", type=int, default=600)
     p.add_argument("--synth", nargs="*", default=[], help="also: these gcgs synth scenes")
     p.add_argument("--scene", default=None, help="also: a prepared real scene ...")
     p.add_argument("--init-dir", default=None, help="... and its init output (reference depth)")
+    p.add_argument("--delta-step", type=float, default=0.5, help="offset step, mm (offsets -10 .. +10 mm)")
     p.add_argument("--out", default="reports/priors")
-    args = p.parse_args(argv)
-    deltas = np.round(np.arange(-10.0, 10.0 + 1e-9, 0.5), 6)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not args.delta_step > 0:
+        raise ValueError(f"--delta-step must be > 0 mm, got {args.delta_step}")
+    deltas = np.round(np.arange(-10.0, 10.0 + 1e-9, args.delta_step), 6)
     t0 = time.perf_counter()
     cams = Path(args.cameras)
     curves = {"relief plate": summarise(deltas, *relief_curve(cams, args.width, args.height, deltas))}
@@ -115,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
               "delta_mm": deltas.tolist(), "curves": curves, "seconds": round(time.perf_counter() - t0, 1)}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "gcf_vs_depth_offset.json").write_text(json.dumps(result, indent=1) + "\n")
+    atomic.write_text(out / "gcf_vs_depth_offset.json", json.dumps(result, indent=1) + "\n")
 
     import matplotlib
 
@@ -138,7 +144,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: argmin delta = {c['argmin_delta_mm']:+.2f} mm")
     print(f"wrote {out}/gcf_vs_depth_offset.{{json,png}}")
     return 0
-
-
-if __name__ == "__main__":
-    raise SystemExit(main())

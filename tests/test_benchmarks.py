@@ -1,0 +1,84 @@
+"""Smoke tests of the ``gcgs bench-*`` benchmarks on tiny cases: each runs through the CLI
+and writes a report that parses and holds finite numbers (speed is never asserted)."""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from pipeline import cli
+from relief_scene import write_relief_scene
+
+
+def _numbers(obj) -> list[float]:
+    if isinstance(obj, bool) or obj is None or isinstance(obj, str):
+        return []
+    if isinstance(obj, (int, float)):
+        return [float(obj)]
+    items = obj.values() if isinstance(obj, dict) else obj
+    return [x for v in items for x in _numbers(v)]
+
+
+def read_report(path: Path) -> dict:
+    """The JSON report, refusing NaN/Infinity (not JSON) and non-finite numbers."""
+    def no_constant(name):
+        raise AssertionError(f"{path}: {name} in the report")
+
+    data = json.loads(path.read_text(), parse_constant=no_constant)
+    nums = _numbers(data)
+    assert nums and all(math.isfinite(x) for x in nums), path
+    return data
+
+
+def test_bench_eval(tmp_path):
+    out = tmp_path / "reports"
+    assert cli.main(["bench-eval", "--vertices", "3000", "--radius", "12", "--gt-vertices", "2000",
+                     "--out-dir", str(out)]) == 0
+    rep = read_report(out / "evaluation.json")
+    assert len(rep["runs"]) == 2 and rep["mesh_vertices"] > 2000
+    near, far = rep["runs"]
+    assert near["wall_s"] > 0 and 50 < near["peak_rss_mib"] < 4000
+    assert near["accuracy_mm"] < 1.0 < far["accuracy_mm"]  # the 2 mm-off mesh is 2 mm off
+    assert "| bumpy ball" in (out / "evaluation.md").read_text()
+
+
+def test_bench_raster(tmp_path, monkeypatch):
+    from pipeline.benchmarks import rasterizer
+
+    monkeypatch.setattr(rasterizer, "QUICK", [(64, 48, 400)])
+    assert cli.main(["bench-raster", "--quick", "--repeats", "1", "--out-dir", str(tmp_path)]) == 0
+    recs = read_report(tmp_path / "rasterizer_quick.json")
+    assert {r["backend"] for r in recs} == {"cpu", "reference"}
+    for r in recs:
+        assert r["forward_s"] > 0 and r["backward_s"] > 0 and r["peak_mb"] is not None
+    assert "| 64x48 | 400 |" in (tmp_path / "rasterizer_quick.md").read_text()
+
+
+@pytest.fixture(scope="module")
+def tiny_scene_and_init(tmp_path_factory, bundled_scan):
+    scene_dir, init_dir, _ = write_relief_scene(tmp_path_factory.mktemp("bench_priors"), bundled_scan, (23, 24, 33),
+                                                80, 60)
+    return scene_dir, init_dir
+
+
+def test_bench_priors(tmp_path, tiny_scene_and_init):
+    scene, init = tiny_scene_and_init
+    out = tmp_path / "stage_benchmark.json"
+    assert cli.main(["bench-priors", "--scene", str(scene), "--init-dir", str(init), "--repeats", "1",
+                     "--out", str(out)]) == 0
+    rep = read_report(out)
+    assert rep["size"] == "80x60" and len(rep["stage"]) == 3
+    for r in rep["stage"].values():
+        assert r["wall_s_median"] > 0 and 50 < r["max_rss_mb_max"] < 4000
+    assert rep["losses_float32_cpu"]["gcf_points"] > 0
+
+
+def test_bench_gcf(tmp_path, bundled_scan):
+    assert cli.main(["bench-gcf", "--cameras", str(bundled_scan), "--width", "80", "--height", "60",
+                     "--delta-step", "5", "--out", str(tmp_path)]) == 0
+    rep = read_report(tmp_path / "gcf_vs_depth_offset.json")
+    assert rep["delta_mm"] == [-10.0, -5.0, 0.0, 5.0, 10.0]
+    assert len(rep["curves"]["relief plate"]["loss"]) == 5
+    assert (tmp_path / "gcf_vs_depth_offset.png").stat().st_size > 0
