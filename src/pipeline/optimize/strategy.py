@@ -22,10 +22,9 @@ from pipeline.rasterizer.project import quat_to_rotmat
 
 def screen_grad_ndc(means2d_grad: torch.Tensor, width: int, height: int) -> torch.Tensor:
     """Norm of the screen-space gradient in normalised device units, ``(P,)``."""
-    g = means2d_grad.detach().to(torch.float64).clone()
-    g[:, 0] *= width / 2.0
-    g[:, 1] *= height / 2.0
-    return g.norm(dim=1)
+    g = means2d_grad.detach()
+    scale = torch.tensor([width / 2.0, height / 2.0], dtype=g.dtype)
+    return (g * scale).norm(dim=1).to(torch.float64)
 
 
 @dataclass

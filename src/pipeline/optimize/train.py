@@ -255,12 +255,15 @@ class Trainer:
         return row
 
     def _degenerate(self) -> torch.Tensor:
-        """Surfels with non-finite parameters or gradients, or a degenerate scale."""
-        bad = torch.zeros(self.params.num, dtype=torch.bool)
+        """Surfels with non-finite parameters or gradients, or a degenerate scale. The
+        common case costs one summation per tensor: rows are inspected only when a sum
+        is not finite (NaN and Inf propagate through it)."""
+        n = self.params.num
+        bad = torch.zeros(n, dtype=torch.bool)
         for p in self.params.tensors().values():
-            bad |= ~torch.isfinite(p.detach().reshape(self.params.num, -1)).all(dim=1)
-            if p.grad is not None:
-                bad |= ~torch.isfinite(p.grad.reshape(self.params.num, -1)).all(dim=1)
+            for t in (p.detach(), p.grad):
+                if t is not None and not bool(torch.isfinite(t.sum())):
+                    bad |= ~torch.isfinite(t.reshape(n, -1).sum(dim=1))
         ls = self.params.log_scales.detach()
         bad |= (ls.min(dim=1).values < math.log(MIN_SCALE)) | (ls.max(dim=1).values > math.log(MAX_SCALE * self.cfg.scene_extent))
         return bad
