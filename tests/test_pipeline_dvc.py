@@ -33,6 +33,9 @@ def tiny_repo(tmp_path_factory) -> Path:
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["synth"].update(scenes=["synth_relief"], width=160, height=120)
     params["data"].update(width=160, height=120)
+    params["optimize"].update(iterations=12, checkpoint_every=5, init_voxel_norm=0.02,
+                              downscale=[[0.0, 2], [0.5, 1]], start={"gcf": 0, "nor": 0, "d": 4, "dn": 8})
+    params["optimize"]["densify"].update(start_iter=4, stop_iter=10, every=4)
     # Two scenes, one without ground truth, so that a change to one shows what reruns.
     params["scenes"] = {"synth_relief": {"src": "data/synth/synth_relief", "gt": "data/synth/synth_relief/gt"},
                         "scan24": {"src": "data/raw/dtu/scan24", "gt": None}}
@@ -45,8 +48,16 @@ def tiny_repo(tmp_path_factory) -> Path:
 def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     first = _dvc(tiny_repo, "repro")
     for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
-                  "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report"):
+                  "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
+                  "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
+                  "mesh@scan24", "evaluate@scan24"):
         assert f"Running stage '{stage}'" in first
+    metrics = json.loads((tiny_repo / "reports/metrics/synth_relief.json").read_text())
+    assert metrics["chamfer"]["overall_mm"] > 0 and metrics["train"]["iterations"] == 12
+    real = json.loads((tiny_repo / "reports/metrics/scan24.json").read_text())
+    assert 0 < real["heldout"]["iou_mean"] <= 1 and real["heldout"]["views"] == 46
+    assert (tiny_repo / "reports/train/scan24/plots/metrics/train/total.tsv").is_file()
+    assert not (tiny_repo / "data/checkpoints/scan24.pt").exists()
     assert (tiny_repo / "data/init/synth_relief/points.ply").is_file()
     assert (tiny_repo / "data/scenes/synth_relief/cameras_sphere.npz").is_file()
     relief = json.loads((tiny_repo / "reports/baseline/synth_relief.json").read_text())
@@ -72,6 +83,14 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     assert json.loads((tiny_repo / "reports/baseline/synth_relief.json").read_text()) == relief
 
     params = yaml.safe_load((tiny_repo / "params.yaml").read_text())
+    params["loss"]["lambda_gcf"] = 0.0
+    (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    status = _dvc(tiny_repo, "status")
+    for stage in ("priors@scan24", "optimize@scan24", "optimize@synth_relief"):
+        assert stage in status
+    for stage in ("prepare@scan24", "init@scan24", "baseline@scan24", "synth@synth_relief"):
+        assert stage not in status
+
     params["data"]["width"], params["data"]["height"] = 120, 90
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     status = _dvc(tiny_repo, "status")
