@@ -303,7 +303,8 @@ def run(scene: Scene, cfg: InitConfig) -> InitResult:
     maps, point_conf = [], []
     for i, (sw, vp) in enumerate(zip(sweeps, views)):
         conf = np.clip(sw.score, 0.0, 1.0) * vp.count / n_other
-        maps.append(DepthMap(scene.view_ids[i], sw.depth_mm, np.where(vp.valid, conf, 0.0).astype(np.float32),
+        maps.append(DepthMap(scene.view_ids[i], np.where(vp.valid, sw.depth_mm, 0.0).astype(np.float32),
+                             np.where(vp.valid, conf, 0.0).astype(np.float32),
                              vp.valid, scene.K[i], scene.world_to_cam[i]))
         point_conf.append(conf[vp.pixels[:, 0], vp.pixels[:, 1]])
     cloud = fuse_views(views, point_conf, scene.world_to_cam, cfg.voxel_norm * scene.norm_scale_mm, cfg.normal_knn)

@@ -18,7 +18,7 @@ from pipeline import geometry
 class RayHits:
     """Per-pixel ray casting result for one camera."""
 
-    depth_mm: np.ndarray  # (H, W) camera-frame z; inf where the ray misses
+    depth_mm: np.ndarray  # (H, W) camera-frame z; 0 where the ray misses (no depth, see init.io.DepthMap)
     normal_cam: np.ndarray  # (H, W, 3) unit face normals in the camera frame, facing the camera; 0 on misses
     points_world: np.ndarray  # (H, W, 3) hit points, world mm; nan on misses
 
@@ -57,7 +57,7 @@ class MeshCaster:
         n_cam[np.sum(n_cam * rays_cam, -1) > 0] *= -1
         n_cam[~hit] = 0.0
         pts = origin + dirs_world * np.where(hit, t, np.nan)[..., None]
-        return RayHits(depth_mm=np.where(hit, t, np.inf), normal_cam=n_cam, points_world=pts)
+        return RayHits(depth_mm=np.where(hit, t, 0.0), normal_cam=n_cam, points_world=pts)
 
 
 def relief_mesh(center: np.ndarray, normal: np.ndarray, size_mm: float, amplitude_mm: float,
@@ -104,7 +104,7 @@ class TexturedScene:
     images: np.ndarray  # (N, H, W, 3) float32 in [0, 1]
     K: np.ndarray  # (N, 3, 3)
     world_to_cam: np.ndarray  # (N, 4, 4)
-    depth_mm: np.ndarray  # (N, H, W) camera z at pixel centres, inf where empty
+    depth_mm: np.ndarray  # (N, H, W) camera z at pixel centres, 0 where empty
     normal_cam: np.ndarray  # (N, H, W, 3) GT face normals, camera frame, facing the camera
     vertices: np.ndarray
     triangles: np.ndarray
@@ -136,7 +136,7 @@ def textured_relief_scene(K: np.ndarray, world_to_cam: np.ndarray, width: int, h
             for sx in range(supersample):
                 off = ((sx + 0.5) / supersample - 0.5, (sy + 0.5) / supersample - 0.5)
                 hits = caster.cast(k, T, height, width, off)
-                hit = np.isfinite(hits.depth_mm)
+                hit = hits.depth_mm > 0
                 n_world = hits.normal_cam @ T[:3, :3]
                 shade = 0.35 + 0.65 * np.abs(n_world @ light)
                 a = albedo(np.nan_to_num(hits.points_world), seed + 1)
