@@ -75,8 +75,8 @@ class MVSConfig:
     refine_iters: int = 1  # surface-following refinement passes (0: plain sweep)
     refine_range: float = 2.0  # ... searching +- this many plane steps around the smoothed sweep
     refine_step: float = 0.25  # ... in steps of this fraction of a plane step
-    warn_below_matched: float = 0.25  # warn when a view's matched fraction of mask pixels is below this
-    warn_below_consistent: float = 0.15  # ... or its geometrically consistent fraction
+    warn_below_matched: float = 0.15  # warn when a view's matched fraction of mask pixels is below this
+    warn_below_consistent: float = 0.10  # ... or its geometrically consistent fraction
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
