@@ -324,7 +324,7 @@ def match_warnings(view_ids: list[int], matched: list[float], consistent: list[f
     """One message per view whose matched or consistent fraction of mask pixels is below
     ``params.warn_below_matched`` / ``warn_below_consistent``: such a run exits normally
     but its cloud covers little of the object (a real dark, wide-baseline scan: 5-10 %
-    matched, 2-5 % consistent; scan24: 77-85 % and 71-76 %)."""
+    matched, 2-5 % consistent; scan24: 85-91 % and 79-82 %)."""
     out = []
     for v, m, c in zip(view_ids, matched, consistent):
         low = []
