@@ -26,7 +26,7 @@ def spheres_world(scene: Scene) -> list[tuple[np.ndarray, float]]:
 
 
 def ray_cast(K, w2c, H, W, spheres) -> tuple[np.ndarray, np.ndarray]:
-    """GT camera z (mm; inf where no hit) and world hit points (H, W, 3)."""
+    """GT camera z (mm; 0 where no hit) and world hit points (H, W, 3)."""
     ys, xs = np.mgrid[0:H, 0:W].astype(np.float64)
     rays_cam = np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T  # unit z
     R, t = w2c[:3, :3], w2c[:3, 3]
@@ -40,7 +40,8 @@ def ray_cast(K, w2c, H, W, spheres) -> tuple[np.ndarray, np.ndarray]:
             z = (b - np.sqrt(disc)) / a
         z = np.where((disc > 0) & (z > 0), z, np.inf)
         best = np.minimum(best, z)
-    cam = rays_cam * np.where(np.isfinite(best), best, 0.0)[..., None]
+    best = np.where(np.isfinite(best), best, 0.0)
+    cam = rays_cam * best[..., None]
     world = (cam - t) @ R  # R^T (cam - t)
     return best, world
 
@@ -58,7 +59,7 @@ def texture(world: np.ndarray, wavelength_mm: float, seed: int = 0) -> np.ndarra
 
 def make_scene(width: int = 200, height: int = 150, seed: int = 0,
                spheres: list[tuple[np.ndarray, float]] | None = None) -> tuple[Scene, np.ndarray]:
-    """The test scene at ``width x height`` and its GT depth maps ``(N, H, W)`` (inf = miss).
+    """The test scene at ``width x height`` and its GT depth maps ``(N, H, W)`` (0 = miss).
     ``spheres``: (centre mm, radius mm) of each part (default :func:`spheres_world`)."""
     base = load_scene(SCAN, resolution=(width, height))
     spheres = spheres_world(base) if spheres is None else spheres
@@ -68,7 +69,7 @@ def make_scene(width: int = 200, height: int = 150, seed: int = 0,
     images, masks, depths = [], [], []
     for K, w2c in zip(base.K, base.world_to_cam):
         z, world = ray_cast(K, w2c, height, width, spheres)
-        hit = np.isfinite(z)
+        hit = z > 0
         # Normals of whichever sphere was hit (the nearest one).
         normal = np.zeros_like(world)
         for centre, radius in spheres:

@@ -35,7 +35,7 @@ def true_pointmaps(scene: Scene, size: tuple[int, int]) -> tuple[np.ndarray, np.
     for v in range(N):
         K = geometry.scale_intrinsics(scene.K[v], w / scene.width, h / scene.height)
         z, X = ray_cast(K, scene.world_to_cam[v], h, w, spheres_world(scene))
-        hit = np.isfinite(z)
+        hit = z > 0
         far = geometry.backproject_depth(K, scene.world_to_cam[v], np.full((h, w), 2000.0))
         world.append(np.where(hit[..., None], X, far))
         conf.append(np.where(hit, 5.0, 1.0))

@@ -22,7 +22,7 @@ def write_relief_scene(root: Path, camera_source: Path, views: tuple[int, ...], 
                                 meta={"name": "relief"})
     init_dir = root / "init"
     for v, K, T, d in zip(views, sc.K, sc.world_to_cam, sc.depth_mm):
-        ok = np.isfinite(d)
+        ok = d > 0
         write_depth(depth_path(init_dir, v),
                     DepthMap(v, np.where(ok, d, 0).astype(np.float32), ok.astype(np.float32), ok, K, T))
     return scene_dir, init_dir, sc

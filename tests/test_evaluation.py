@@ -74,10 +74,12 @@ def synthetic_views(shape=(120, 160)):
 
 def test_gt_mesh_against_itself_is_near_zero(ground_truth):
     V, F, _ = sphere()
-    # seed 1: not the GT writer's downsampling order, else the two point sets coincide.
-    m = dtu_eval.evaluate_mesh(V, F, ground_truth, NO_CULL, seed=1, log=None)
+    # The GT was written with seed 0 and is evaluated with seed 0, yet its points are
+    # thinned in another order (derived seed): the score is the true discretisation
+    # floor (~0.07 mm), not ~1e-5 mm from getting the GT points themselves back.
+    m = dtu_eval.evaluate_mesh(V, F, ground_truth, NO_CULL, seed=0, log=None)
     assert m["valid"] and m["problems"] == []
-    assert 0 < m["accuracy_mm"] < 0.12 and 0 < m["completeness_mm"] < 0.12
+    assert 0.03 < m["accuracy_mm"] < 0.12 and 0.03 < m["completeness_mm"] < 0.12
     assert m["overall_mm"] == pytest.approx((m["accuracy_mm"] + m["completeness_mm"]) / 2)
     c = m["counts"]
     assert c["data_sampled"] > c["data_downsampled"] >= c["data_in_bb"] >= c["data_in_obs"] > 0.9 * c["data_downsampled"]

@@ -6,7 +6,8 @@ import scipy.io
 from scipy.spatial import cKDTree
 
 from pipeline.evaluation import gt as gtmod
-from pipeline.evaluation.sampling import MeshError, check_mesh, radius_downsample, sample_mesh, sample_triangles
+from pipeline.evaluation.sampling import (MeshError, check_mesh, derived_seed, radius_downsample, sample_mesh,
+                                         sample_triangles)
 
 CENTRE = np.array([-28.0, -13.0, 641.0])  # scan24's object centre (DTU world, mm)
 
@@ -75,6 +76,22 @@ def test_radius_downsampling_equals_the_greedy_loop(seed):
     kept = P[keep]
     d, _ = cKDTree(kept).query(kept, k=2)
     assert d[:, 1].min() > 0.2  # nothing kept within the radius of another kept point
+
+
+def test_gt_thinning_order_is_independent_of_the_evaluation_seed(tmp_path):
+    """The GT writer's stl points are the mesh's samples thinned in an order derived from
+    its seed; for no evaluation seed near it is the thinning the same."""
+    V, F = sphere()
+    samples = sample_mesh(V, F, 0.2)
+    for seed in (0, 1):
+        gtmod.write_ground_truth(tmp_path / str(seed), 1001, V, F, np.array([0, 0, -1.0, 1e3]), seed=seed)
+        gt_points = gtmod.read_ground_truth(tmp_path / str(seed)).points_mm
+        want = samples[radius_downsample(samples, 0.2, seed=derived_seed(seed, gtmod.GT_SEED_PURPOSE))]
+        np.testing.assert_allclose(gt_points, want, atol=1e-4)  # float32 storage
+        for eval_seed in (0, 1, 2):
+            same = samples[radius_downsample(samples, 0.2, seed=eval_seed)]
+            assert len(same) != len(gt_points) or not np.allclose(same, gt_points, atol=1e-4)
+    assert derived_seed(0, "a") == derived_seed(0, "a") != derived_seed(0, "b") != derived_seed(1, "b")
 
 
 def test_radius_downsampling_handles_far_outliers():

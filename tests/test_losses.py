@@ -37,11 +37,13 @@ def tiny():
     return H, W, K, cams, feats, depth
 
 
-def reference_gcf(depth, K, cams, feats, image_size):
-    """Loop-based Eq. 4-9 with scipy's bilinear interpolation (independent of torch)."""
+def reference_gcf(depth, K, cams, feats, image_size, valid=None):
+    """Loop-based Eq. 4-9 with scipy's bilinear interpolation (independent of torch), over
+    the pixels in ``valid`` (default: all)."""
     H, W = depth.shape
     o = [geometry.camera_center(T) for T in cams]
     pts = geometry.backproject_depth(K, cams[0], depth).reshape(-1, 3)
+    use = np.ones(H * W, bool) if valid is None else valid.reshape(-1)
     s = feats[0].shape[2] / image_size[1]
 
     def bilinear(f, x, y):
@@ -52,6 +54,8 @@ def reference_gcf(depth, K, cams, feats, image_size):
 
     total = 0.0
     for n, x in enumerate(pts):
+        if not use[n]:
+            continue
         fr = bilinear(feats[0], n % W, n // W)
         v_ref = (x - o[0]) / np.linalg.norm(x - o[0])
         for i in (1, 2):
@@ -64,14 +68,14 @@ def reference_gcf(depth, K, cams, feats, image_size):
             v_i = (x - o[i]) / np.linalg.norm(x - o[i])
             w = max(0.0, v_ref @ v_i)
             total += w * (1 - fr @ fi / (np.linalg.norm(fr) * np.linalg.norm(fi)))
-    return total / len(pts)
+    return total / use.sum()
 
 
 def test_gcf_matches_independent_reference(tiny):
     H, W, K, cams, feats, depth = tiny
     t = lambda a: torch.from_numpy(a)  # noqa: E731
     src = [(K, cams[i], t(feats[i])) for i in (1, 2)]
-    got = gcf_loss(t(depth), K, cams[0], t(feats[0]), src)
+    got = gcf_loss(t(depth), K, cams[0], t(feats[0]), src, valid=np.ones((H, W), bool))
     want = reference_gcf(depth, K, cams, feats, (H, W))
     assert want > 0.1  # the reference is not trivially zero
     np.testing.assert_allclose(float(got), want, rtol=1e-9)
@@ -96,8 +100,9 @@ def test_gcf_consistent_features_give_zero_and_offsets_do_not():
     depth = 100.0 / (np.stack([xs, ys, np.ones_like(xs)], -1) @ np.linalg.inv(K).T @ cams[0][:3, :3])[..., 2]
     depth = torch.from_numpy(depth)
     src = [(K, cams[i], feats[i]) for i in (1, 2)]
-    l0 = float(gcf_loss(depth, K, cams[0], feats[0], src))
-    l5 = float(gcf_loss(depth + 5.0, K, cams[0], feats[0], src))
+    everywhere = torch.ones(H, W, dtype=torch.bool)
+    l0 = float(gcf_loss(depth, K, cams[0], feats[0], src, valid=everywhere))
+    l5 = float(gcf_loss(depth + 5.0, K, cams[0], feats[0], src, valid=everywhere))
     assert l0 < 1e-3 and l5 > 0.1
 
 
@@ -106,17 +111,46 @@ def test_gcf_ignores_points_behind_or_outside_sources(tiny):
     t = torch.from_numpy
     away = look_at(np.array([0.0, 0.0, 300.0]), np.array([0.0, 0.0, 400.0]))  # looks away
     far_side = look_at(np.array([500.0, 0.0, 100.0]), np.array([600.0, 0.0, 100.0]))
-    loss = gcf_loss(t(depth), K, cams[0], t(feats[0]), [(K, away, t(feats[1])), (K, far_side, t(feats[2]))])
+    loss = gcf_loss(t(depth), K, cams[0], t(feats[0]), [(K, away, t(feats[1])), (K, far_side, t(feats[2]))],
+                    valid=np.ones((H, W), bool))
     assert float(loss) == 0.0
-    # Masked-out or invalid depth pixels are not points.
+    # Pixels outside the mask (whatever their depth, NaN included) and depth-0 pixels are
+    # not points; a NaN inside the mask is an error, not a silently dropped pixel.
     d = depth.copy()
-    d[0, 0], d[0, 1] = 0.0, np.nan
+    d[0, 0], d[1, 1] = 0.0, np.nan
     mask = np.ones((H, W), bool)
     mask[1] = False
     src = [(K, cams[i], t(feats[i])) for i in (1, 2)]
-    _, terms, valid = gcf_loss(t(d), K, cams[0], t(feats[0]), src, mask=torch.from_numpy(mask), return_terms=True)
-    assert valid.sum() == H * W - 2 - W and terms.shape == (H * W - 2 - W,)
+    _, terms, points = gcf_loss(t(d), K, cams[0], t(feats[0]), src, valid=torch.from_numpy(mask), return_terms=True)
+    assert points.sum() == H * W - 1 - W and terms.shape == (H * W - 1 - W,)
     assert torch.isfinite(terms).all()
+    with pytest.raises(ValueError, match="non-finite depth inside the validity mask"):
+        gcf_loss(t(d), K, cams[0], t(feats[0]), src, valid=np.ones((H, W), bool))
+    with pytest.raises(ValueError, match="shape"):
+        gcf_loss(t(depth), K, cams[0], t(feats[0]), src, valid=np.ones((H, W + 1), bool))
+
+
+def test_gcf_faint_alpha_pixels_are_not_points(tiny):
+    """A rendered expected depth is positive wherever alpha is faint; with the validity
+    mask (alpha > 0.5) those pixels must not count, though their depth is positive."""
+    H, W, K, cams, feats, depth = tiny
+    t = torch.from_numpy
+    alpha = np.full((H, W), 0.9)
+    alpha[:, :3] = 0.02  # faint: a far-away floater's expected depth, say
+    rendered = depth.copy()
+    rendered[:, :3] = 40.0  # positive, and nowhere near the surface
+    valid = alpha > 0.5
+    src = [(K, cams[i], t(feats[i])) for i in (1, 2)]
+    got = float(gcf_loss(t(rendered), K, cams[0], t(feats[0]), src, valid=t(valid)))
+    want = reference_gcf(rendered, K, cams, feats, (H, W), valid)
+    np.testing.assert_allclose(got, want, rtol=1e-9)
+    # The same render counted everywhere (what a depth > 0 test would do) is another loss.
+    everywhere = float(gcf_loss(t(rendered), K, cams[0], t(feats[0]), src, valid=np.ones((H, W), bool)))
+    assert abs(everywhere - got) > 0.05
+    # Only the masked pixels get a gradient.
+    d = t(rendered).requires_grad_()
+    g, = torch.autograd.grad(gcf_loss(d, K, cams[0], t(feats[0]), src, valid=t(valid)), d)
+    assert torch.count_nonzero(g[:, :3]) == 0 and torch.count_nonzero(g[:, 3:]) > 0
 
 
 def test_zero_features_have_defined_cosine_and_finite_gradients(tiny):
@@ -134,7 +168,8 @@ def test_zero_features_have_defined_cosine_and_finite_gradients(tiny):
     feats[1][:, 1:, :] = 0.0
     t = torch.from_numpy
     d = t(depth).requires_grad_()
-    loss = gcf_loss(d, K, cams[0], t(feats[0]), [(K, cams[i], t(feats[i])) for i in (1, 2)])
+    loss = gcf_loss(d, K, cams[0], t(feats[0]), [(K, cams[i], t(feats[i])) for i in (1, 2)],
+                    valid=np.ones((H, W), bool))
     loss.backward()
     assert torch.isfinite(loss) and torch.isfinite(d.grad).all()
 
@@ -153,8 +188,10 @@ def test_gcf_gradcheck(tiny):
     t = torch.from_numpy
     src = [(t(K), t(cams[i]), t(feats[i])) for i in (1, 2)]
     d = t(depth).requires_grad_()
-    assert torch.autograd.gradcheck(lambda x: gcf_loss(x, K, cams[0], t(feats[0]), src), (d,), eps=1e-6, atol=1e-7)
-    g, = torch.autograd.grad(gcf_loss(d, K, cams[0], t(feats[0]), src), d)
+    valid = np.ones((H, W), bool)
+    assert torch.autograd.gradcheck(lambda x: gcf_loss(x, K, cams[0], t(feats[0]), src, valid=valid), (d,),
+                                    eps=1e-6, atol=1e-7)
+    g, = torch.autograd.grad(gcf_loss(d, K, cams[0], t(feats[0]), src, valid=valid), d)
     assert torch.count_nonzero(g) >= H * W // 3  # depth really drives the loss
 
 

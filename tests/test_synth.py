@@ -101,7 +101,7 @@ def test_depth_reprojects_consistently_between_views(relief):
     V, F = read_mesh(relief / "gt" / "mesh.ply")
     d23 = raycast_depth(V, F, scene.K[0], scene.world_to_cam[0], W, H)
     d24 = raycast_depth(V, F, scene.K[1], scene.world_to_cam[1], W, H)
-    pts = geometry.backproject_depth(scene.K[0], scene.world_to_cam[0], np.nan_to_num(d23))[scene.masks[0]]
+    pts = geometry.backproject_depth(scene.K[0], scene.world_to_cam[0], d23)[scene.masks[0]]
     px, z = geometry.project(scene.K[1], scene.world_to_cam[1], pts)
     ij = np.rint(px).astype(int)
     ok = (ij[:, 0] >= 0) & (ij[:, 0] < W) & (ij[:, 1] >= 0) & (ij[:, 1] < H)
@@ -123,7 +123,8 @@ def test_masks_are_object_hits_and_depths_match_the_mesh(relief, bundled_scan, c
     d = raycast_depth(V, F, scaled_K(cams, 23, W, H), cams.world_to_cam[23], W, H)
     np.testing.assert_allclose(d[mask], hits["depth"][mask], atol=1e-3)
     # Object depth is in DTU range (the cameras are ~640-690 mm from the sphere centre).
-    assert 450 < np.nanmin(hits["depth"][mask]) < np.nanmax(hits["depth"][mask]) < 800
+    assert 450 < hits["depth"][mask].min() < hits["depth"][mask].max() < 800
+    assert np.all(hits["depth"][~hits["hit"]] == 0) and np.all(hits["depth"][hits["hit"]] > 0)  # 0: no depth
 
 
 def test_views_are_photo_consistent(cams):
@@ -138,7 +139,7 @@ def test_views_are_photo_consistent(cams):
     mask = renderer.object_mask(hits[23])
 
     def median_error(offset_mm):
-        depth = np.nan_to_num(hits[23]["depth"]) + offset_mm
+        depth = hits[23]["depth"] + offset_mm
         pts = geometry.backproject_depth(K[23], cams.world_to_cam[23], depth)[mask]
         px, z = geometry.project(K[24], cams.world_to_cam[24], pts)
         ij = np.rint(px).astype(int)
@@ -186,7 +187,7 @@ def test_ground_truth_files_are_consistent(relief, cams):
     scene = dtu.load_scene(relief, view_ids=[23, 40])
     for k in range(2):
         d = raycast_depth(V, F, scene.K[k], scene.world_to_cam[k], W, H)
-        seen = geometry.backproject_depth(scene.K[k], scene.world_to_cam[k], np.nan_to_num(d))[np.isfinite(d)]
+        seen = geometry.backproject_depth(scene.K[k], scene.world_to_cam[k], d)[d > 0]
         idx = gt.voxel_index(seen)
         assert gt.obs_mask[idx[:, 0], idx[:, 1], idx[:, 2]].all()
     centre = gt.voxel_index(syn.to_world(np.array([[0.0, 0.0, 70.0]])))[0]  # 85 mm below the surface

@@ -14,9 +14,8 @@ from pipeline.meshing import tsdf
 @pytest.fixture(scope="module")
 def fused():
     scene, gt = make_scene(320, 240)
-    depth = np.where(np.isfinite(gt), gt, 0.0)
     voxel, trunc = MeshConfig().sizes_mm(scene.norm_scale_mm)
-    mesh = tsdf.fuse_depth_maps(depth, scene.K, scene.world_to_cam, scene.images, voxel, trunc,
+    mesh = tsdf.fuse_depth_maps(gt, scene.K, scene.world_to_cam, scene.images, voxel, trunc,
                                 depth_max_mm=2000.0)
     return scene, gt, mesh, voxel
 
@@ -39,8 +38,8 @@ def test_mesh_covers_what_the_cameras_see(fused):
     scene, gt, mesh, voxel = fused
     from scipy.spatial import cKDTree
 
-    pts = geometry.backproject_depth(scene.K[0], scene.world_to_cam[0], np.where(np.isfinite(gt[0]), gt[0], 0))
-    pts = pts[np.isfinite(gt[0])][::7]
+    pts = geometry.backproject_depth(scene.K[0], scene.world_to_cam[0], gt[0])
+    pts = pts[gt[0] > 0][::7]
     dist, _ = cKDTree(mesh.vertices_mm).query(pts)
     assert np.percentile(dist, 95) < 1.5 * voxel
 
@@ -99,7 +98,7 @@ def _init_folder_from_gt(tmp_path, scene, gt):
                             masks=dict(zip(ids, scene.masks)))
     init_dir = tmp_path / "init"
     for i, v in enumerate(ids):
-        valid = np.isfinite(gt[i])
+        valid = gt[i] > 0
         write_depth(depth_path(init_dir, v), DepthMap(v, np.where(valid, gt[i], 0.0).astype(np.float32),
                                                      valid.astype(np.float32), valid, scene.K[i], scene.world_to_cam[i]))
     return scene_dir, init_dir

@@ -94,11 +94,13 @@ class MVSConfig:
     max_depths: int = 512  # cap on the number of planes
     window: int = 7  # NCC window side, pixels (odd)
     min_ncc: float = 0.5  # winner's mean NCC below this -> invalid
-    min_std: float = 0.01  # reference window std (grey in [0, 1]) below this -> textureless, invalid
+    min_rel_std: float = 0.025  # reference window grey std / the view's mean grey in its mask below this -> textureless
     sphere_margin: float = 1.0  # depth range: rays crossed with the unit sphere scaled by this
     refine_iters: int = 1  # surface-following refinement passes (0: plain sweep)
     refine_range: float = 2.0  # ... searching +- this many plane steps around the smoothed sweep
     refine_step: float = 0.25  # ... in steps of this fraction of a plane step
+    warn_below_matched: float = 0.15  # warn when a view's matched fraction of mask pixels is below this
+    warn_below_consistent: float = 0.10  # ... or its geometrically consistent fraction
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -107,6 +109,8 @@ class MVSConfig:
             raise ConfigError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
         if self.refine_iters < 0 or not 0 < self.refine_step <= self.refine_range:
             raise ConfigError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
+        if self.min_rel_std < 0:
+            raise ConfigError(f"init.mvs.min_rel_std must be >= 0, got {self.min_rel_std}")
 
 
 @dataclass

@@ -3,7 +3,11 @@ normal consistency (Eq. 10-12). Differentiable torch functions; float32 or float
 
 Conventions: OpenCV camera axes, ``world_to_cam`` maps world (mm) to camera, pixel
 centres at integer coordinates (``pipeline.geometry``). Depth maps are camera-frame z in
-mm, as the 2DGS renderer gives them.
+mm, as the 2DGS renderer gives them, in the project's "no depth" convention
+(:class:`pipeline.init.io.DepthMap`): finite, 0 where there is no depth, and a bool
+validity mask saying which pixels are surface points. A rendered expected depth is
+positive wherever any surfel contributes, however faint its alpha, so the mask (e.g.
+``alpha > 0.5``), not the depth, decides.
 """
 from __future__ import annotations
 
@@ -64,13 +68,14 @@ def gcf_loss(
     world_to_cam_ref,
     feats_ref: torch.Tensor,
     sources: Sequence[tuple],
-    mask: torch.Tensor | None = None,
+    *,
+    valid: torch.Tensor | np.ndarray,
     ref_image_size: tuple[int, int] | None = None,
     return_terms: bool = False,
 ):
     """Geometric-consistent feature loss L_gcf (GCGS Eq. 4-9), differentiable in depth.
 
-    For each reference pixel p (integer centre) with valid depth, the surface point is
+    For each reference pixel p (integer centre) in ``valid``, the surface point is
     ``x = O_ref + z(p) K_ref^-1 (p, 1)`` in the camera frame, i.e. Eq. 4's
     ``O_ref + D(p) d(p)`` with the unit ray d and ``D = z |K^-1 (p, 1)|`` (``depth_ref`` is
     camera-frame z, as rendered). For each source view i: ``v_ref``, ``v_i`` are the unit
@@ -80,26 +85,33 @@ def gcf_loss(
     projecting outside its feature map contributes nothing for that source.
 
     Args:
-        depth_ref: ``(H, W)`` camera-frame z in mm; pixels with ``z <= 0`` or non-finite z
-            are not points.
+        depth_ref: ``(H, W)`` camera-frame z in mm, finite where ``valid``.
         K_ref, world_to_cam_ref: ``(3, 3)`` intrinsics at ``(H, W)``, ``(4, 4)`` world(mm)
             -> camera (numpy or torch).
         feats_ref: ``(C, h, w)`` reference features (any scale, see :func:`sample_features`).
         sources: ``[(K_i, world_to_cam_i, feats_i, (H_i, W_i)), ...]``; the image size may
             be omitted (3-tuples) when it equals ``(H, W)``.
-        mask: optional ``(H, W)`` bool, the reference pixels to use.
+        valid: ``(H, W)`` bool, required: the reference pixels that are surface points
+            (for a render, where alpha is high enough; for a depth map, its validity
+            mask). Pixels with depth 0 are never points; a non-finite depth inside
+            ``valid`` raises ``ValueError``.
         ref_image_size: image size ``feats_ref`` refers to, default ``(H, W)``.
-        return_terms: also return the per-point sum over sources ``(N,)`` and the point mask.
+        return_terms: also return the per-point sum over sources ``(N,)`` and the ``(H, W)``
+            point mask (``valid & (depth > 0)``).
 
     Returns the mean over the N valid reference points of ``sum_i w (1 - cos)`` (0 when
     there is none).
     """
     H, W = depth_ref.shape
     z = depth_ref.reshape(-1)
-    valid = torch.isfinite(z) & (z > 0)
-    if mask is not None:
-        valid = valid & torch.as_tensor(mask, device=z.device).reshape(-1).bool()
-    idx = torch.nonzero(valid).squeeze(1)
+    mask = torch.as_tensor(valid, device=z.device).bool()
+    if mask.shape != depth_ref.shape:
+        raise ValueError(f"gcf_loss: valid {tuple(mask.shape)} must have the depth's shape {(H, W)}")
+    mask = mask.reshape(-1)
+    if not torch.isfinite(z[mask]).all():
+        raise ValueError("gcf_loss: non-finite depth inside the validity mask (no depth is 0, outside the mask)")
+    points = mask & (z > 0)
+    idx = torch.nonzero(points).squeeze(1)
     zs = z[idx]
     ys = torch.div(idx, W, rounding_mode="floor").to(z.dtype)
     xs = (idx % W).to(z.dtype)
@@ -132,7 +144,7 @@ def gcf_loss(
         total = total + torch.where(front & inside, term, torch.zeros_like(term))
     loss = total.sum() / max(len(idx), 1)
     if return_terms:
-        return loss, total, valid.view(H, W)
+        return loss, total, points.view(H, W)
     return loss
 
 

@@ -27,17 +27,17 @@ def offset_curve(images: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, de
                  deltas_mm: np.ndarray, ref: int = 0, feature_kwargs: dict | None = None) -> np.ndarray:
     """L_gcf of view ``ref`` against the other views for ``depth + delta``, per delta.
 
-    ``depth_ref_mm``: (H, W) ground-truth camera z, non-finite or <= 0 where empty.
+    ``depth_ref_mm``: (H, W) ground-truth camera z, 0 where empty (the project's convention).
     """
     H, W = depth_ref_mm.shape
     feats = [torch.from_numpy(default_features(im, **(feature_kwargs or {}))) for im in images]
     size = feature_image_size(H, W)
     sources = [(K[i], world_to_cam[i], feats[i], size) for i in range(len(images)) if i != ref]
-    mask = torch.from_numpy(np.isfinite(depth_ref_mm) & (depth_ref_mm > 0))
-    depth = torch.from_numpy(np.where(mask.numpy(), depth_ref_mm, 0.0)).float()
+    mask = torch.from_numpy(depth_ref_mm > 0)
+    depth = torch.from_numpy(depth_ref_mm).float()
     with torch.no_grad():
         return np.array([
-            float(gcf_loss(depth + float(d), K[ref], world_to_cam[ref], feats[ref], sources, mask=mask, ref_image_size=size))
+            float(gcf_loss(depth + float(d), K[ref], world_to_cam[ref], feats[ref], sources, valid=mask, ref_image_size=size))
             for d in deltas_mm
         ])
 
@@ -80,7 +80,7 @@ def init_depth_curve(scene_dir: Path, init_dir: Path, deltas_mm: np.ndarray) -> 
 
     scene = dtu.load_scene(scene_dir, view_ids=None)
     d = read_depth(depth_path(init_dir, scene.view_ids[0]))
-    depth = np.where(d.valid, d.depth_mm, np.nan)
+    depth = np.where(d.valid, d.depth_mm, 0.0)
     curve = offset_curve(scene.images, scene.K, scene.world_to_cam, depth, deltas_mm)
     info = {"scene": f"{scene_dir} (real images)", "reference_depth": f"{init_dir} (init stage, valid pixels)",
             "width": scene.width, "height": scene.height, "reference_view": scene.view_ids[0],

@@ -61,7 +61,7 @@ def bench_losses(scene_dir: str, init_dir: str, repeats: int) -> dict:
     times = []
     for _ in range(repeats + 1):  # the first run warms up
         t = time.perf_counter()
-        gcf_loss(depth, scene.K[0], scene.world_to_cam[0], feats[0], src, mask=mask).backward()
+        gcf_loss(depth, scene.K[0], scene.world_to_cam[0], feats[0], src, valid=mask).backward()
         times.append(time.perf_counter() - t)
     n = torch.nn.functional.normalize(torch.randn(3, scene.height, scene.width), dim=0).requires_grad_()
     m = torch.nn.functional.normalize(torch.randn(3, scene.height, scene.width), dim=0)

@@ -164,7 +164,8 @@ def evaluate_mesh(
     """DTU Chamfer distance of a mesh in world millimetres against ``gt``.
 
     ``views``: the culling views (``None`` or empty: no culling). ``seed`` fixes the
-    downsampling order. ``log`` receives progress lines (``None``: silent). Raises
+    downsampling order (synthetic GT points are thinned in an order derived from their
+    own seed, never this one: see ``gt.GT_SEED_PURPOSE``). ``log`` receives progress lines (``None``: silent). Raises
     :class:`~pipeline.evaluation.sampling.MeshError` for an empty or degenerate mesh.
 
     Returns a JSON-ready dict: ``accuracy_mm``, ``completeness_mm``, ``overall_mm`` (NaN when

@@ -12,6 +12,7 @@ voxel ``round((p - BB[0]) / Res)``, as in the evaluation script.
 """
 from __future__ import annotations
 
+import io
 import os
 import re
 import tempfile
@@ -27,6 +28,7 @@ from pipeline.errors import InputError, MissingInputError
 from pipeline.evaluation.sampling import (
     MeshError,
     check_mesh,
+    derived_seed,
     radius_downsample,
     sample_mesh,
 )
@@ -34,6 +36,14 @@ from pipeline.evaluation.sampling import (
 # The official files are named "_10" after the 10 mm margin of their observation mask.
 # With one voxel of dilation the margin here is one voxel, so 10 mm voxels match it.
 DEFAULT_RES_MM = 10.0
+# Replaces scipy's .mat header text, which holds the time of writing: the same GT gives
+# the same bytes (DVC hashes outputs).
+MAT_DESCRIPTION = b"MATLAB 5.0 MAT-file, written by pipeline.evaluation.gt"
+# The stl points' thinning order is drawn from the writer's seed and this purpose, never
+# equal to the evaluator's order for the same seed: with equal orders a mesh with the GT
+# mesh's layout gets exactly the GT points back and scores ~1e-5 mm instead of its true
+# ~0.07 mm discretisation floor.
+GT_SEED_PURPOSE = "ground-truth points"
 
 
 class GroundTruthError(InputError):
@@ -190,6 +200,14 @@ def read_ground_truth(gt_dir: str | Path, scan_id: int | None = None) -> GroundT
 # --- writer -------------------------------------------------------------------------------
 
 
+def mat_bytes(data: dict) -> bytes:
+    """A compressed MATLAB 5 file of ``data`` whose bytes depend on ``data`` only (the
+    116-byte header text, a timestamp in scipy's, is :data:`MAT_DESCRIPTION`)."""
+    buf = io.BytesIO()
+    scipy.io.savemat(buf, data, do_compression=True)
+    return MAT_DESCRIPTION.ljust(116, b" ") + buf.getvalue()[116:]
+
+
 def write_ground_truth(
     gt_dir: str | Path,
     scan_id: int,
@@ -205,14 +223,17 @@ def write_ground_truth(
 
     * stl points: the mesh sampled like the evaluation samples data (vertices plus a
       ``spacing_mm`` triangle grid), then greedily radius-downsampled at ``spacing_mm``
-      (the official stl points are "reduced to 0.2 mm neighbourhood density").
+      (the official stl points are "reduced to 0.2 mm neighbourhood density") in an
+      order drawn from ``derived_seed(seed, GT_SEED_PURPOSE)``, independent of the
+      evaluator's order for any seed.
     * ObsMask: voxels of size ``res_mm`` holding an observed point (default: every stl
       point), dilated by one voxel (26-neighbourhood), so the mask reaches at least one
       voxel beyond the observed surface. BB: the bounds of the points, grown by two voxels.
     * Plane: ``plane`` (4,), points with ``[x, y, z, 1] . plane > 0`` are above the ground.
 
     Existing files are replaced; each file is written to a temp file first and all are
-    renamed into place at the end. Returns the paths written (see :func:`paths`).
+    renamed into place at the end; the same arguments give the same bytes. Returns the
+    paths written (see :func:`paths`).
     """
     V, F = check_mesh(vertices_mm, triangles, name="ground-truth mesh")
     plane = np.asarray(plane, dtype=np.float64).ravel()
@@ -221,7 +242,7 @@ def write_ground_truth(
     if not (np.isfinite(res_mm) and res_mm > 0 and np.isfinite(spacing_mm) and spacing_mm > 0):
         raise ValueError(f"res_mm and spacing_mm must be positive, got {res_mm}, {spacing_mm}")
     samples = sample_mesh(V, F, spacing_mm)
-    points = samples[radius_downsample(samples, spacing_mm, seed=seed)]
+    points = samples[radius_downsample(samples, spacing_mm, seed=derived_seed(seed, GT_SEED_PURPOSE))]
     observed = points if observed_points_mm is None else np.asarray(observed_points_mm, dtype=np.float64)
     if observed.ndim != 2 or observed.shape[1] != 3 or len(observed) == 0 or not np.isfinite(observed).all():
         raise ValueError(f"observed_points_mm must be a non-empty finite (N, 3) array, got shape {observed.shape}")
@@ -238,15 +259,12 @@ def write_ground_truth(
     out = paths(gt_dir, int(scan_id))
     staged: list[tuple[Path, Path]] = []
     try:
-        def savemat(f: str, data: dict) -> None:
-            with open(f, "wb") as fh:
-                scipy.io.savemat(fh, data, do_compression=True)
-
         for key, writer in (
             ("points", lambda f: Path(f).write_bytes(ply.encode(_xyz_float32(points)))),
             ("mesh", lambda f: Path(f).write_bytes(ply.encode(_xyz_float32(V), F))),
-            ("obs_mask", lambda f: savemat(f, {"ObsMask": mask, "BB": bb, "Res": np.array([[res_mm]])})),
-            ("plane", lambda f: savemat(f, {"P": plane.reshape(4, 1)})),
+            ("obs_mask", lambda f: Path(f).write_bytes(mat_bytes({"ObsMask": mask, "BB": bb,
+                                                                   "Res": np.array([[res_mm]])}))),
+            ("plane", lambda f: Path(f).write_bytes(mat_bytes({"P": plane.reshape(4, 1)}))),
         ):
             final = out[key]
             final.parent.mkdir(parents=True, exist_ok=True)

@@ -5,6 +5,8 @@ Both are numba kernels: the script's per-triangle Python loop and its per-point
 """
 from __future__ import annotations
 
+import zlib
+
 import numba
 import numpy as np
 from numba import prange
@@ -212,6 +214,13 @@ def _cell_keys(P: np.ndarray, cell_mm: float) -> tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"point cloud too spread out for a {cell_mm} mm grid (occupied extent {dims} cells)")
     cell += 1
     return (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2], dims
+
+
+def derived_seed(seed: int, purpose: str) -> int:
+    """A 64-bit seed for one purpose (e.g. the GT points' thinning order) derived from a
+    user seed: different purposes get unrelated random streams from the same seed."""
+    state = np.random.SeedSequence([int(seed), zlib.crc32(purpose.encode("utf-8"))]).generate_state(2, np.uint32)
+    return int(state[0]) << 32 | int(state[1])
 
 
 def radius_downsample(points: np.ndarray, radius_mm: float, seed: int | None = 0) -> np.ndarray:

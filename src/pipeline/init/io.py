@@ -4,7 +4,7 @@
   ``nx ny nz`` (float32, unit normals), ``red green blue`` (uint8) and ``confidence``
   (float32 in [0, 1]). Written by hand so that the custom property is kept exactly.
 * ``depth/{view:03d}.npz``: one per input view (``view`` = DTU view id):
-  ``depth_mm`` float32 (H, W) camera-frame z in mm (0 where invalid), ``confidence``
+  ``depth_mm`` float32 (H, W) camera-frame z in mm (0 = no depth), ``confidence``
   float32 (H, W) in [0, 1] (0 where invalid), ``valid`` bool (H, W), ``K`` float64 (3, 3)
   at this (H, W) with integer pixel centres, ``world_to_cam`` float64 (4, 4) world mm ->
   camera, ``view_id`` int64 scalar.
@@ -108,14 +108,30 @@ def read_ply(path: str | Path) -> PointCloud:
 
 @dataclass
 class DepthMap:
-    """One view's depth in its own camera frame (mm), with confidence and validity."""
+    """One view's depth in its own camera frame (mm), with confidence and validity.
+
+    "No depth" has one encoding in the whole project: a depth map is camera-frame z in
+    mm, finite everywhere, **0 where there is no depth**; never NaN or inf. Where a bool
+    validity mask travels with it (here ``valid``), it marks exactly the pixels with
+    depth > 0. A depth that is positive without being a surface point (a rendered
+    expected depth where alpha is faint) needs such a mask to say which pixels count:
+    :func:`pipeline.losses.gcf_loss` takes it as a required argument.
+    """
 
     view_id: int
-    depth_mm: np.ndarray  # (H, W) float32 camera z, mm; 0 where invalid
-    confidence: np.ndarray  # (H, W) float32 in [0, 1]; 0 where invalid
-    valid: np.ndarray  # (H, W) bool
+    depth_mm: np.ndarray  # (H, W) float32 camera z, mm; 0 = no depth
+    confidence: np.ndarray  # (H, W) float32 in [0, 1]; 0 where there is no depth
+    valid: np.ndarray  # (H, W) bool, == (depth_mm > 0)
     K: np.ndarray  # (3, 3) at (H, W)
     world_to_cam: np.ndarray  # (4, 4) world mm -> camera
+
+    def __post_init__(self) -> None:
+        if self.depth_mm.shape != self.valid.shape:
+            raise ValueError(f"DepthMap {self.view_id}: depth {self.depth_mm.shape} and valid {self.valid.shape} differ")
+        if not np.all(np.isfinite(self.depth_mm)) or np.any(self.depth_mm < 0):
+            raise ValueError(f"DepthMap {self.view_id}: depth must be finite and >= 0 (0 = no depth)")
+        if not np.array_equal(self.valid, self.depth_mm > 0):
+            raise ValueError(f"DepthMap {self.view_id}: valid must be exactly the pixels with depth > 0")
 
 
 DEPTH_KEYS = ("depth_mm", "confidence", "valid", "K", "world_to_cam", "view_id")
@@ -126,10 +142,10 @@ def depth_path(out_dir: str | Path, view_id: int) -> Path:
 
 
 def write_depth(path: str | Path, d: DepthMap) -> Path:
-    """Write one depth map (atomically). Invalid pixels are zeroed in depth and confidence."""
+    """Write one depth map (atomically); confidence is zeroed where there is no depth."""
     path = Path(path)
     valid = np.asarray(d.valid, dtype=bool)
-    depth = np.where(valid, d.depth_mm, 0.0).astype(np.float32)
+    depth = np.asarray(d.depth_mm, np.float32)
     conf = np.where(valid, d.confidence, 0.0).astype(np.float32)
     with atomic.atomic_file(path, suffix=".npz") as tmp:
         np.savez_compressed(
@@ -151,8 +167,8 @@ def read_depth(path: str | Path) -> DepthMap:
         raise InitFormatError(f"{path}: K must be 3x3 and world_to_cam 4x4")
     if not np.all(np.isfinite(depth)) or not np.all(np.isfinite(conf)):
         raise InitFormatError(f"{path}: non-finite depth or confidence")
-    if np.any(depth[valid.astype(bool)] <= 0):
-        raise InitFormatError(f"{path}: valid pixels with depth <= 0")
+    if not np.array_equal(valid.astype(bool), depth > 0):
+        raise InitFormatError(f"{path}: valid must be exactly the pixels with depth > 0 (0 = no depth)")
     return DepthMap(
         view_id=int(data["view_id"]), depth_mm=depth.astype(np.float32), confidence=conf.astype(np.float32),
         valid=valid.astype(bool), K=data["K"].astype(np.float64), world_to_cam=data["world_to_cam"].astype(np.float64),

@@ -217,7 +217,8 @@ def run(scene: Scene, cfg: InitConfig, model: OnnxModel | None = None) -> InitRe
     maps, point_conf = [], []
     for i, vp in enumerate(views):
         c = (1.0 - 1.0 / np.maximum(confs[i], 1.0)) * vp.count / max(N - 1, 1)
-        maps.append(DepthMap(scene.view_ids[i], depths[i], np.where(vp.valid, c, 0.0).astype(np.float32), vp.valid,
+        maps.append(DepthMap(scene.view_ids[i], np.where(vp.valid, depths[i], 0.0).astype(np.float32),
+                             np.where(vp.valid, c, 0.0).astype(np.float32), vp.valid,
                              scene.K[i], scene.world_to_cam[i]))
         point_conf.append(c[vp.pixels[:, 0], vp.pixels[:, 1]])
     cloud = fuse_views(views, point_conf, scene.world_to_cam, cfg.voxel_norm * scene.norm_scale_mm, cfg.normal_knn)

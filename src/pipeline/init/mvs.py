@@ -35,6 +35,23 @@ def to_grey(images: np.ndarray) -> np.ndarray:
     return images @ np.array([0.299, 0.587, 0.114], dtype=images.dtype)
 
 
+def normalised_grey(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
+    """``(N, H, W, 3)`` RGB -> ``(N, H, W)`` float32 luminance divided by each view's mean
+    luminance inside its object mask (over all pixels without masks).
+
+    NCC ignores gain, but the contrast threshold (``min_rel_std``) and NCC's variance
+    floor do not: on a dark capture (object mean ~0.06) an absolute threshold rejects most
+    windows. After this, contrast is relative to the view's own exposure.
+    """
+    grey = to_grey(np.asarray(images, np.float32))
+    out = np.empty(grey.shape, np.float32)
+    for i, g in enumerate(grey):
+        inside = g[masks[i]] if masks is not None and masks[i].any() else g
+        mean = float(inside.mean())
+        out[i] = g / mean if mean > 0 else g
+    return out
+
+
 def sphere_depth_range(K: np.ndarray, world_to_cam: np.ndarray, norm_to_world: np.ndarray,
                        pixels: np.ndarray, margin: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Per-pixel ``(near, far)`` camera z (mm) where each ray crosses the scene sphere.
@@ -169,9 +186,12 @@ def _smooth_inverse_depth(inv_depth: np.ndarray, ok: np.ndarray) -> np.ndarray:
 
 
 def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | None = None) -> SweepResult:
-    """Depth map of view ``ref`` by plane sweep against every other view of ``scene``."""
+    """Depth map of view ``ref`` by plane sweep against every other view of ``scene``.
+
+    ``grey``: the views' :func:`normalised_grey` (computed when not given).
+    """
     H, W = scene.height, scene.width
-    grey = to_grey(scene.images) if grey is None else grey
+    grey = normalised_grey(scene.images, scene.masks) if grey is None else grey
     mask = scene.masks[ref] if scene.masks is not None else np.ones((H, W), bool)
     srcs = [i for i in range(scene.num_views) if i != ref]
     out = SweepResult(np.zeros((H, W), np.float32), np.full((H, W), -1.0, np.float32), np.zeros((H, W), bool), 0)
@@ -261,7 +281,7 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
         ok = obj & interior & (best_score >= params.min_ncc)
     depth = (1.0 / inv_depth).astype(np.float32)
 
-    valid = ok & (np.sqrt(var_r) >= params.min_std)
+    valid = ok & (np.sqrt(var_r) >= params.min_rel_std)
     out.depth_mm[y0:y1, x0:x1] = np.where(valid, depth, 0.0)
     out.score[y0:y1, x0:x1] = np.where(valid, best_score, -1.0)
     out.valid[y0:y1, x0:x1] = valid
@@ -274,7 +294,7 @@ def run(scene: Scene, cfg: InitConfig) -> InitResult:
 
     Per-pixel confidence = max(NCC, 0) * (agreeing other views) / (N - 1).
     """
-    grey = to_grey(scene.images)
+    grey = normalised_grey(scene.images, scene.masks)
     sweeps = [sweep_view(scene, r, cfg.mvs, grey) for r in range(scene.num_views)]
     depths = np.stack([s.depth_mm for s in sweeps])
     valid = np.stack([s.valid for s in sweeps])
@@ -283,16 +303,39 @@ def run(scene: Scene, cfg: InitConfig) -> InitResult:
     maps, point_conf = [], []
     for i, (sw, vp) in enumerate(zip(sweeps, views)):
         conf = np.clip(sw.score, 0.0, 1.0) * vp.count / n_other
-        maps.append(DepthMap(scene.view_ids[i], sw.depth_mm, np.where(vp.valid, conf, 0.0).astype(np.float32),
+        maps.append(DepthMap(scene.view_ids[i], np.where(vp.valid, sw.depth_mm, 0.0).astype(np.float32),
+                             np.where(vp.valid, conf, 0.0).astype(np.float32),
                              vp.valid, scene.K[i], scene.world_to_cam[i]))
         point_conf.append(conf[vp.pixels[:, 0], vp.pixels[:, 1]])
     cloud = fuse_views(views, point_conf, scene.world_to_cam, cfg.voxel_norm * scene.norm_scale_mm, cfg.normal_knn)
+    masks = _masks(scene)
+    matched = [round(float(s.valid.sum() / max(1, m.sum())), 4) for s, m in zip(sweeps, masks)]
+    consistent = [round(float(v.valid.sum() / max(1, m.sum())), 4) for v, m in zip(views, masks)]
     info = {
         "num_depths": [s.num_depths for s in sweeps],
-        "matched_fraction": [float(s.valid.sum() / max(1, m.sum())) for s, m in zip(sweeps, _masks(scene))],
-        "consistent_fraction": [float(v.valid.sum() / max(1, m.sum())) for v, m in zip(views, _masks(scene))],
+        "matched_fraction": matched,
+        "consistent_fraction": consistent,
+        "warnings": match_warnings(scene.view_ids, matched, consistent, cfg.mvs),
     }
     return InitResult(cloud, maps, info)
+
+
+def match_warnings(view_ids: list[int], matched: list[float], consistent: list[float], params: MVSConfig) -> list[str]:
+    """One message per view whose matched or consistent fraction of mask pixels is below
+    ``params.warn_below_matched`` / ``warn_below_consistent``: such a run exits normally
+    but its cloud covers little of the object (a real dark, wide-baseline scan: 5-10 %
+    matched, 2-5 % consistent; scan24: 85-91 % and 79-82 %)."""
+    out = []
+    for v, m, c in zip(view_ids, matched, consistent):
+        low = []
+        if m < params.warn_below_matched:
+            low.append(f"matched {m:.1%} (init.mvs.warn_below_matched {params.warn_below_matched:.0%})")
+        if c < params.warn_below_consistent:
+            low.append(f"consistent {c:.1%} (init.mvs.warn_below_consistent {params.warn_below_consistent:.0%})")
+        if low:
+            out.append(f"view {v}: only {' and '.join(low)} of its mask pixels: the cloud misses much of the "
+                       "object there; check the mask, the exposure and the baseline to the other views")
+    return out
 
 
 def _masks(scene: Scene) -> np.ndarray:

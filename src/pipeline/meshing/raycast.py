@@ -18,7 +18,7 @@ from pipeline import geometry
 class RayHits:
     """Per-pixel ray casting result for one camera."""
 
-    depth_mm: np.ndarray  # (H, W) camera-frame z; inf where the ray misses
+    depth_mm: np.ndarray  # (H, W) camera-frame z; 0 where the ray misses (no depth, see init.io.DepthMap)
     normal_cam: np.ndarray  # (H, W, 3) unit face normals in the camera frame, facing the camera; 0 on misses
     points_world: np.ndarray  # (H, W, 3) hit points, world mm; nan on misses
 
@@ -51,7 +51,7 @@ class MeshCaster:
         n_cam[np.sum(n_cam * rays_cam, -1) > 0] *= -1
         n_cam[~hit] = 0.0
         pts = origin + dirs_world * np.where(hit, t, np.nan)[..., None]
-        return RayHits(depth_mm=np.where(hit, t, np.inf), normal_cam=n_cam, points_world=pts)
+        return RayHits(depth_mm=np.where(hit, t, 0.0), normal_cam=n_cam, points_world=pts)
 
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (mm, float64 ``(N,)``) of world points ``(N, 3)`` to the surface."""

@@ -57,7 +57,7 @@ class TexturedScene:
     images: np.ndarray  # (N, H, W, 3) float32 in [0, 1]
     K: np.ndarray  # (N, 3, 3)
     world_to_cam: np.ndarray  # (N, 4, 4)
-    depth_mm: np.ndarray  # (N, H, W) camera z at pixel centres, inf where empty
+    depth_mm: np.ndarray  # (N, H, W) camera z at pixel centres, 0 where empty
     normal_cam: np.ndarray  # (N, H, W, 3) GT face normals, camera frame, facing the camera
     vertices: np.ndarray
     triangles: np.ndarray
@@ -89,7 +89,7 @@ def textured_relief_scene(K: np.ndarray, world_to_cam: np.ndarray, width: int, h
             for sx in range(supersample):
                 off = ((sx + 0.5) / supersample - 0.5, (sy + 0.5) / supersample - 0.5)
                 hits = caster.cast(k, T, height, width, off)
-                hit = np.isfinite(hits.depth_mm)
+                hit = hits.depth_mm > 0
                 n_world = hits.normal_cam @ T[:3, :3]
                 shade = 0.35 + 0.65 * np.abs(n_world @ light)
                 a = albedo(np.nan_to_num(hits.points_world), seed + 1)

@@ -173,9 +173,13 @@ class RenderOutput:
             background; add ``bg * (1 - alpha)`` yourself).
         alpha: ``(H, W)`` accumulated opacity ``1 - prod_i (1 - alpha_i)``.
         depth_expected: ``(H, W)`` ``sum_i w_i z_i / (sum_i w_i + eps)``, ``z_i`` the camera
-            z of the ray–splat intersection (world units); 0 where nothing is hit.
+            z of the ray–splat intersection (world units); 0 where nothing is hit. It is
+            positive wherever any surfel contributes, however faint ``alpha`` is there, so
+            it is a depth map in the project's convention (``init.io.DepthMap``: 0 = no
+            depth) only together with a validity mask such as ``alpha > 0.5``, which
+            ``losses.gcf_loss`` requires.
         depth_median: ``(H, W)`` depth of the last surfel composited while the
-            transmittance is still > 0.5; 0 where that never happens.
+            transmittance is still > 0.5; 0 where that never happens (no depth).
         normal_cam: ``(H, W, 3)`` ``sum_i w_i n_i`` in the camera frame, each ``n_i`` the
             unit surfel normal flipped to face the camera (not renormalised: divide by
             ``alpha`` for a mean direction).

@@ -79,9 +79,9 @@ def _needs_supersampling(rgb: np.ndarray, gid: np.ndarray, threshold: float) -> 
 def raycast_depth(vertices_mm: np.ndarray, triangles: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray,
                   width: int, height: int) -> np.ndarray:
     """Exact camera-z depth (mm, ``(height, width)`` float64) of a world-frame mesh in one
-    view, ``np.nan`` where the pixel-centre ray hits nothing."""
-    depth = MeshCaster(vertices_mm, triangles).cast(K, world_to_cam, height, width).depth_mm
-    return np.where(np.isfinite(depth), depth, np.nan)
+    view, 0 where the pixel-centre ray hits nothing (the project's "no depth", see
+    :class:`pipeline.init.io.DepthMap`)."""
+    return MeshCaster(vertices_mm, triangles).cast(K, world_to_cam, height, width).depth_mm
 
 
 @numba.njit(cache=True, parallel=True)
@@ -181,14 +181,14 @@ class Renderer:
 
     def cast(self, K: np.ndarray, world_to_cam: np.ndarray, width: int, height: int) -> dict[str, np.ndarray]:
         """Ray cast one view through the pixel centres. Returns ``depth`` (camera z, mm;
-        NaN where nothing is hit), ``geometry`` (geometry id per pixel, -1 for misses),
+        0 where nothing is hit), ``geometry`` (geometry id per pixel, -1 for misses),
         ``hit`` and what :meth:`shade` and :meth:`points_local` need."""
         origin, A = pixel_to_ray(K, world_to_cam, self.scene.local_to_world)
         rays = grid_rays(origin, A, width, height)
         tr = self._trace(rays)
         hit = tr["geometry"] >= 0
         return {
-            "depth": np.where(hit, tr["t"], np.nan).astype(np.float64).reshape(height, width),
+            "depth": np.where(hit, tr["t"], 0.0).astype(np.float64).reshape(height, width),
             "geometry": tr["geometry"].reshape(height, width),
             "hit": hit.reshape(height, width),
             "_trace": tr,

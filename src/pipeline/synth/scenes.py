@@ -29,7 +29,16 @@ SCENES: dict[str, tuple[int, Callable[[int], list[shapes.Part]], str]] = {
     "synth_textureless": (1001, shapes.textureless_blob, "a large smooth region of one plain colour"),
     "synth_relief": (1002, shapes.relief_sphere, "fine high-frequency geometric detail (~1.5 mm bumps, 3-8 mm periods)"),
     "synth_thin": (1003, shapes.thin_structures, "thin fins (2-3.5 mm) and rods (4-6 mm) and sharp box edges"),
+    "synth_dark_wide": (1004, shapes.relief_sphere, "a dark capture (mean 0.06 inside the masks) meant for "
+                        "views 6, 24, 40, 38-41 degrees apart (DTU's inputs 23/24/33: 10-12)"),
 }
+# Scenes rendered as a dark capture: one gain for every view, chosen so that the mean RGB
+# value inside the object masks over all views is this (then 8-bit quantised, like any
+# PNG): real scans brought by users were this dark.
+DARK_MASK_MEAN = {"synth_dark_wide": 0.06}
+# Input views a scene is made for when they are not the DTU default (recorded in scene.json
+# as ``suggested_views``; prepare it with these views).
+SUGGESTED_VIEWS = {"synth_dark_wide": [6, 24, 40]}
 
 
 @dataclass
@@ -162,6 +171,11 @@ def write_synth_scene(
         hits = renderer.cast(K[v], cams.world_to_cam[v], width, height)
         images[v] = renderer.shade(hits)
         masks[v] = renderer.object_mask(hits)
+    gain = 1.0
+    if name in DARK_MASK_MEAN:
+        grey = [np.mean(images[v][masks[v]]) for v in cams.ids if masks[v].any()]
+        gain = DARK_MASK_MEAN[name] / float(np.mean(grey))
+        images = {v: np.clip(img * gain, 0.0, 1.0) for v, img in images.items()}
     say(f"[synth] {name}: rendered {len(cams.ids)} views at {width}x{height} ({time.perf_counter() - t0:.1f} s)")
     v_local, tris = visible_gt_mesh(scene, renderer, cams, (src_w, src_h))
     v_world = scene.to_world(v_local)
@@ -183,7 +197,10 @@ def write_synth_scene(
             "cameras_from": str(cameras_dir),
             "width": width,
             "height": height,
+            "exposure_gain": round(gain, 6),
         }
+        if name in SUGGESTED_VIEWS:
+            meta["suggested_views"] = SUGGESTED_VIEWS[name]
         dtu.write_scene(out_dir, images, K, cams.world_to_cam, cams.norm_to_world, masks=masks, meta=meta,
                         extra={"gt": gt_tmp})
     finally:
