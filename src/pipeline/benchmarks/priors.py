@@ -38,10 +38,8 @@ def bench_stage(scene: str, init_dir: str, params: dict, repeats: int, tmp: Path
             if rc != 0:
                 raise RuntimeError(f"gcgs {' '.join(argv)} exited with {rc}")
             runs.append(usage)
-        info = json.loads((tmp / "out" / "priors.json").read_text())
         out[name] = {"wall_s_median": round(statistics.median(r.wall_s for r in runs), 2),
                      "max_rss_mb_max": max(r.peak_rss_mb for r in runs),
-                     "in_stage_s": {k: info[k] for k in ("load_s", "normals_s", "features_s", "time_s")},
                      "output_mb": round(sum(f.stat().st_size for f in (tmp / "out").rglob("*") if f.is_file()) / 2**20, 1)}
     return out
 
