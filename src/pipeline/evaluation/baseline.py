@@ -53,7 +53,7 @@ def _step(fn: Callable, *args) -> tuple[dict, Any]:
 
 def baseline_scene(scene_dir: str | Path, init_dir: str | Path, out_dir: str | Path, gt_dir: str | Path | None,
                    init_cfg: InitConfig, eval_cfg: EvaluateConfig, mesh_cfg: MeshConfig,
-                   log: Callable[[str], None] = print) -> dict:
+                   init_usage: dict | None = None, log: Callable[[str], None] = print) -> dict:
     """The baseline of one scene (module docstring); clouds, mesh and metrics go to
     ``out_dir`` (written whole at the end). Returns the report (JSON-ready)."""
     scene_dir, init_dir, out_dir = Path(scene_dir), Path(init_dir), Path(out_dir)
@@ -75,8 +75,7 @@ def baseline_scene(scene_dir: str | Path, init_dir: str | Path, out_dir: str | P
         for backend in BACKEND_MODULES:
             if backend == default:
                 entry: dict = {"status": "ok", "source": f"init stage ({init_dir})",
-                               "init": {"wall_s": init_info.get("time_s"), "cpu_s": init_info.get("cpu_s"),
-                                        "peak_rss_mb": init_info.get("peak_rss_mb")},
+                               "init": {k: (init_usage or {}).get(k) for k in ("wall_s", "cpu_s", "peak_rss_mb")},
                                "init_facts": {k: v for k, v in init_info.items() if k not in ("config", "scene")}}
                 cloud_path = init_dir / "points.ply"
             elif backend == "mast3r" and not init_cfg.mast3r.model:

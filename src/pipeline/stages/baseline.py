@@ -22,6 +22,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene-dir", default=None, help="prepared scene (default: data/scenes/SCENE)")
     p.add_argument("--init-dir", default=None, help="the init stage's output (default: data/init/SCENE)")
     p.add_argument("--out-dir", default=None, help="clouds, mesh and metrics (default: data/baseline/SCENE)")
+    p.add_argument("--init-metrics", default=None,
+                   help="the init stage's time and memory (default: reports/init/SCENE.json, if present)")
     p.add_argument("--report", default=None, help="report JSON (default: reports/baseline/SCENE.json)")
     p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
 
@@ -35,9 +37,11 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"scene {args.scene!r} not in params `scenes` ({sorted(scenes)})")
     entry = from_dict(SceneEntry, scenes[args.scene], where=f"scenes.{args.scene}")
     name = args.scene
+    usage_path = Path(args.init_metrics or f"reports/init/{name}.json")
+    init_usage = json.loads(usage_path.read_text()) if usage_path.is_file() else None
     report = baseline.baseline_scene(args.scene_dir or f"data/scenes/{name}", args.init_dir or f"data/init/{name}",
                                      args.out_dir or f"data/baseline/{name}", entry.gt, init_cfg, eval_cfg,
-                                     section(MeshConfig, "mesh", params),
+                                     section(MeshConfig, "mesh", params), init_usage,
                                      log=lambda m: print(f"[baseline] {name}: {m}", flush=True))
     report = {"scene": name, **provenance(), **report}
     out = Path(args.report or f"reports/baseline/{name}.json")

@@ -8,16 +8,16 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
-import time
 from pathlib import Path
 
+from pipeline import atomic
 from pipeline.atomic import atomic_dir
 from pipeline.config import InitConfig, load_params, section
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import SceneError, check_scene
 from pipeline.init import match_summary, run_backend
 from pipeline.init.io import InitResult, depth_path, write_depth, write_ply
-from pipeline.measure import peak_rss_mb
+from pipeline.measure import measure
 
 
 def write_outputs(out_dir: str | Path, result: InitResult, info: dict) -> Path:
@@ -57,13 +57,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend", choices=InitConfig.BACKENDS, default=None, help="default: init.backend")
     p.add_argument("--model", default=None, help="ONNX model file (mast3r backend); default: init.mast3r.model")
     p.add_argument("--out-dir", required=True, help="output folder (points.ply, depth/, init.json)")
+    p.add_argument("--metrics", default=None, help="also write the run's time and peak memory to this JSON")
     p.add_argument("--params", default=None, help="params.yaml to read `init` from (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:
     cfg = section(InitConfig, "init", load_params(args.params), {"backend": args.backend, "mast3r.model": args.model})
-    t0 = time.perf_counter()
-    _, info = run_init(args.scene, args.out_dir, cfg)
-    print(f"init {cfg.backend}: {info['num_points']} points in {time.perf_counter() - t0:.2f} s "
-          f"(peak RSS {peak_rss_mb()} MB) -> {args.out_dir}", *match_summary(info), sep="\n")
+    with measure(reset_peak=False) as usage:
+        _, info = run_init(args.scene, args.out_dir, cfg)
+    print(f"init {cfg.backend}: {info['num_points']} points in {usage.wall_s:.2f} s "
+          f"(peak RSS {usage.peak_rss_mb} MB) -> {args.out_dir}", *match_summary(info), sep="\n")
+    if args.metrics:  # timings live here, not in the output (same inputs, same bytes)
+        atomic.write_text(args.metrics, json.dumps({"backend": cfg.backend, **usage.as_dict()}, indent=2) + "\n")
     return 0
