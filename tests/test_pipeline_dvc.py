@@ -42,6 +42,9 @@ def tiny_repo(tmp_path_factory) -> Path:
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     _dvc(root, "init", "-q")
+    # A clone has commits; dvclive (the optimize stage's curves) fails in a repo without any.
+    subprocess.run(["git", "-c", "user.name=t", "-c", "user.email=t@t", "commit", "-q", "--allow-empty", "-m", "init"],
+                   cwd=root, check=True)
     return root
 
 
