@@ -166,11 +166,7 @@ class InitConfig:
     BACKENDS = tuple(BACKEND_MODULES)
 
     def __post_init__(self) -> None:
-        for name, cls in (("mvs", MVSConfig), ("consistency", ConsistencyConfig), ("sfm", SfMConfig),
-                          ("mast3r", MASt3RConfig)):
-            value = getattr(self, name)
-            if isinstance(value, dict) or value is None:
-                setattr(self, name, from_dict(cls, value, where=f"init.{name}"))
+        nested_sections(self, "init", mvs=MVSConfig, consistency=ConsistencyConfig, sfm=SfMConfig, mast3r=MASt3RConfig)
         if self.backend not in self.BACKENDS:
             raise ConfigError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.voxel_norm < 0:
@@ -321,10 +317,7 @@ class OptimizeConfig:
     BACKENDS = ("auto", "cpu", "cuda", "reference")
 
     def __post_init__(self) -> None:
-        for name, cls in (("lr", LearningRates), ("densify", DensifyConfig), ("start", TermStarts)):
-            value = getattr(self, name)
-            if isinstance(value, dict) or value is None:
-                setattr(self, name, from_dict(cls, value, where=f"optimize.{name}"))
+        nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts)
         if self.backend not in self.BACKENDS:
             raise ConfigError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.masks not in ("auto", "on", "off"):
@@ -383,6 +376,15 @@ def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:
     if unknown:
         raise ConfigError(f"unknown key(s) {unknown} in config section {where or cls.__name__}")
     return cls(**data)
+
+
+def nested_sections(config: Any, where: str, **classes: type) -> None:
+    """Turn the nested sections of ``config`` that are still mappings (as read from YAML)
+    into their dataclasses, in place; unknown keys fail as in :func:`from_dict`."""
+    for name, cls in classes.items():
+        value = getattr(config, name)
+        if isinstance(value, dict) or value is None:
+            setattr(config, name, from_dict(cls, value, where=f"{where}.{name}"))
 
 
 def load_params(path: str | Path | None = None) -> dict[str, Any]:

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.config import ConfigError, LossConfig, OptimizeConfig
 from pipeline.data.scene import Scene
 from pipeline.init.fusion import voxel_downsample
 from pipeline.init.io import PointCloud
@@ -29,7 +29,7 @@ __all__ = ["NonFiniteLossError", "SurfelInitError", "TrainResult", "init_from_cl
 def uses_masks(scene: Scene, cfg: OptimizeConfig) -> bool:
     """Masks are used when ``optimize.masks`` is on, or auto and the scene has them."""
     if cfg.masks == "on" and scene.masks is None:
-        raise SurfelInitError(f"{scene.source}: optimize.masks is on but the scene has no masks")
+        raise ConfigError(f"{scene.source}: optimize.masks is on but the scene has no masks")
     return cfg.masks == "on" or (cfg.masks == "auto" and scene.masks is not None)
 
 

@@ -272,7 +272,6 @@ class Trainer:
         keep = ~bad
         if not keep.any():
             raise NonFiniteLossError(f"every surfel became degenerate at iteration {self.it} (learning rates too high?)")
-        # Non-finite moments would survive the selection only on removed rows; clean the rest anyway.
         ops.select(self.params, self.optimizer, keep)
         self.strategy.state.select(keep)
         self.removed_degenerate += int(bad.sum())

@@ -1,0 +1,75 @@
+"""One optimize run from files to files: load the scene, the init cloud and the priors,
+train, write ``surfels.ply`` and ``train.json``, log the curves with dvclive."""
+from __future__ import annotations
+
+import json
+from dataclasses import asdict
+from pathlib import Path
+
+from pipeline import atomic
+from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.data.dtu import load_scene
+from pipeline.init.io import read_ply
+from pipeline.optimize import init_from_cloud, make_views, uses_masks
+from pipeline.optimize.surfels import write_surfel_ply
+from pipeline.optimize.train import TrainResult, train
+
+LOGGED_TERMS = ("total", "l1", "photo", "gcf", "nor", "dn", "dist", "mask", "surfels", "seconds")
+
+
+def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path, out_dir: str | Path,
+                 cfg: OptimizeConfig, loss: LossConfig, checkpoint: str | Path, live_dir: str | Path | None = None,
+                 progress: bool = True) -> TrainResult:
+    """Train surfels for one scene and write ``out_dir/surfels.ply`` (2DGS layout, world mm)
+    and ``out_dir/train.json`` (what was trained; no timings, so two runs give the same
+    bytes). ``checkpoint`` (outside ``out_dir``) is resumed from when it matches and deleted
+    once the output is written; ``live_dir`` receives the dvclive curves."""
+    scene = load_scene(scene_dir, view_ids=None)
+    cloud_path = Path(init_dir) / "points.ply"
+    surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
+    views = make_views(scene, priors_dir, cfg, loss)
+
+    live = None
+    if live_dir is not None:
+        from dvclive import Live
+
+        live = Live(str(live_dir), save_dvc_exp=False, dvcyaml=None, report=None)
+
+    def on_log(row: dict) -> None:
+        live.step = row["iteration"]
+        for k in LOGGED_TERMS:
+            if k in row:
+                live.log_metric(f"train/{k}", row[k], plot=True)
+
+    ckpt = Path(checkpoint)
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    result = train(surfels, views, cfg, loss, checkpoint=ckpt, on_log=on_log if live else None, progress=progress)
+    if live is not None:
+        live.end()
+
+    facts = {
+        "scene": str(scene_dir), "preset": cfg.preset, "backend": result.backend, "iterations": result.iterations,
+        "surfels_init": result.num_init, "surfels_final": result.params.num,
+        "removed_degenerate": result.removed_degenerate, "masks": uses_masks(scene, cfg),
+        "final_terms": {k: round(v, 6) for k, v in result.final_terms.items() if isinstance(v, float)},
+        "frame": "surfels.ply: world frame, mm (training ran in the normalised frame)",
+        "config": asdict(cfg), "loss": asdict(loss),
+    }
+    with atomic.atomic_dir(out_dir) as tmp:
+        write_surfel_ply(tmp / "surfels.ply", result.params, scene.norm_to_world)
+        (tmp / "train.json").write_text(json.dumps(facts, indent=2, sort_keys=True) + "\n")
+    ckpt.unlink(missing_ok=True)  # finished: the output is the state now
+    return result
+
+
+def timing_report(result: TrainResult, usage: dict, preset: str) -> dict:
+    """The run's timings for ``reports/train``: ``usage`` from :func:`pipeline.measure.measure`
+    plus the per-part split of the iterations this process ran."""
+    iters_run = result.iterations - (result.resumed_from or 0)
+    return {
+        **usage, "iterations": result.iterations, "iterations_this_run": iters_run,
+        "resumed_from": result.resumed_from,
+        "s_per_iteration": round(sum(result.seconds.values()) / max(iters_run, 1), 4),
+        "split_s": {k: round(v, 3) for k, v in result.seconds.items()},
+        "surfels_final": result.params.num, "backend": result.backend, "preset": preset,
+    }
