@@ -36,6 +36,9 @@ def tiny_repo(tmp_path_factory) -> Path:
     params["optimize"].update(iterations=12, checkpoint_every=5, init_voxel_norm=0.02,
                               downscale=[[0.0, 2], [0.5, 1]], start={"gcf": 0, "nor": 0, "d": 4, "dn": 8})
     params["optimize"]["densify"].update(start_iter=4, stop_iter=10, every=4)
+    # Two ablation variants, so that a change to one shows which cells rerun.
+    params["ablation"]["variants"]["no_priors"] = {"init": "mvs", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0}}
+    params["ablation"]["run"] = ["baseline_2dgs", "no_priors"]
     # Two scenes, one without ground truth, so that a change to one shows what reruns.
     params["scenes"] = {"synth_relief": {"src": "data/synth/synth_relief", "gt": "data/synth/synth_relief/gt"},
                         "scan24": {"src": "data/raw/dtu/scan24", "gt": None}}
@@ -53,8 +56,12 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
                   "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
-                  "mesh@scan24", "evaluate@scan24"):
+                  "mesh@scan24", "evaluate@scan24", "variant@synth_relief-baseline_2dgs",
+                  "variant@synth_relief-no_priors"):
         assert f"Running stage '{stage}'" in first
+    cell = json.loads((tiny_repo / "reports/variants/baseline_2dgs/synth_relief.json").read_text())
+    assert cell["chamfer"]["overall_mm"] > 0 and cell["variant"]["init"] == "sfm"
+    assert cell["train"]["iterations"] == 12 and cell["timing"]["wall_s"] > 0
     metrics = json.loads((tiny_repo / "reports/metrics/synth_relief.json").read_text())
     assert metrics["chamfer"]["overall_mm"] > 0 and metrics["train"]["iterations"] == 12
     real = json.loads((tiny_repo / "reports/metrics/scan24.json").read_text())
@@ -86,6 +93,13 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     assert json.loads((tiny_repo / "reports/baseline/synth_relief.json").read_text()) == relief
 
     params = yaml.safe_load((tiny_repo / "params.yaml").read_text())
+    params["ablation"]["variants"]["no_priors"]["mesh"] = {"depth": "expected"}
+    (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    status = _dvc(tiny_repo, "status")
+    assert "variant@synth_relief-no_priors" in status
+    for stage in ("variant@synth_relief-baseline_2dgs", "optimize@synth_relief", "mesh@synth_relief"):
+        assert stage not in status
+
     params["loss"]["lambda_gcf"] = 0.0
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     status = _dvc(tiny_repo, "status")

@@ -351,6 +351,52 @@ class SceneEntry:
 
 
 # Top-level params.yaml sections and their typed configs (``scenes`` maps names to entries).
+@dataclass
+class VariantConfig:
+    """One ablation variant (conf/ablation): where its init cloud comes from and the
+    settings it changes, as partial sections merged over params ``optimize``, ``loss`` and
+    ``mesh``."""
+
+    INITS = ("mvs", "sfm", "random")
+
+    init: str = "mvs"  # mvs: the init stage's dense cloud; sfm / random: the baseline stage's clouds
+    optimize: dict = field(default_factory=dict)
+    loss: dict = field(default_factory=dict)
+    mesh: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.init not in self.INITS:
+            raise ConfigError(f"ablation variant init must be one of {', '.join(self.INITS)}, got {self.init!r}")
+
+
+@dataclass
+class SweepConfig:
+    """The speed-accuracy sweep: each cell (a variant) on each scene."""
+
+    scenes: list[str] = field(default_factory=list)
+    cells: list[str] = field(default_factory=list)
+
+
+@dataclass
+class AblationConfig:
+    """``ablation``: the variants that exist, the ones ``dvc repro`` runs (Table II) and the
+    speed-accuracy sweep's cells."""
+
+    run: list[str] = field(default_factory=list)
+    variants: dict = field(default_factory=dict)
+    speed_accuracy: SweepConfig | dict | None = None
+
+    def __post_init__(self) -> None:
+        self.variants = {name: v if isinstance(v, VariantConfig) else from_dict(VariantConfig, v,
+                                                                                where=f"ablation.variants.{name}")
+                         for name, v in (self.variants or {}).items()}
+        nested_sections(self, "ablation", speed_accuracy=SweepConfig)
+        for key, names in (("run", self.run), ("speed_accuracy.cells", self.speed_accuracy.cells)):
+            missing = sorted(set(names) - set(self.variants))
+            if missing:
+                raise ConfigError(f"ablation.{key} names undefined variant(s) {missing}; defined: {sorted(self.variants)}")
+
+
 SECTIONS: dict[str, type] = {
     "data": DataConfig,
     "synth": SynthConfig,
@@ -360,12 +406,26 @@ SECTIONS: dict[str, type] = {
     "priors": PriorsConfig,
     "mesh": MeshConfig,
     "optimize": OptimizeConfig,
+    "ablation": AblationConfig,
 }
 
 
 def _check_size(where: str, width: int, height: int) -> None:
     if int(width) != width or int(height) != height or width < 1 or height < 1:
         raise ConfigError(f"{where}: image size must be positive integers, got {width}x{height}")
+
+
+def merged_section(cls: type[T], key: str, params: dict[str, Any], changes: dict[str, Any]) -> T:
+    """Section ``key`` of ``params`` with the partial mapping ``changes`` merged in
+    (nested mappings merge key by key), validated like a params value."""
+
+    def merge(base: dict, extra: dict) -> dict:
+        out = copy.deepcopy(base)
+        for k, v in extra.items():
+            out[k] = merge(out.get(k) or {}, v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        return out
+
+    return from_dict(cls, merge(params.get(key) or {}, changes or {}), where=f"{key} (with a variant's changes)")
 
 
 def from_dict(cls: type[T], data: dict[str, Any] | None, where: str = "") -> T:

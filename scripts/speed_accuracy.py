@@ -1,0 +1,55 @@
+"""Run the speed-accuracy sweep (params ``ablation.speed_accuracy``) and write
+``reports/speed_accuracy.csv`` and ``reports/speed_accuracy.png`` (docs/speed_accuracy.md).
+
+Each cell is ``gcgs variant SCENE CELL`` (one variant trained, meshed and scored on one
+scene) in its own process; its metrics go to ``reports/speed_accuracy/SCENE/CELL.json``.
+Cells whose report exists are kept (the sweep resumes); ``--force`` reruns them. The
+cells run one after the other so that their times compare; a launcher spreads them out
+(docs/sweeps.md). Usage: ``python scripts/speed_accuracy.py [--only CELL ...] [--force]``.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+from pipeline.config import AblationConfig, load_params, section
+from pipeline.evaluation.speed_accuracy import collect_cells, write_report
+from pipeline.measure import provenance
+
+REPORTS = Path("reports/speed_accuracy")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--only", nargs="*", default=None, help="run only these cells")
+    ap.add_argument("--force", action="store_true", help="rerun cells whose report exists")
+    ap.add_argument("--report-only", action="store_true", help="only rebuild the CSV and plot")
+    args = ap.parse_args()
+    sweep = section(AblationConfig, "ablation", load_params()).speed_accuracy
+    for scene in sweep.scenes:
+        for cell in sweep.cells:
+            report = REPORTS / scene / f"{cell}.json"
+            if args.report_only or (args.only is not None and cell not in args.only) or (report.is_file() and not args.force):
+                continue
+            env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
+            cmd = ["gcgs", "variant", scene, cell, "--scene", f"data/scenes/{scene}", "--init-dir", f"data/init/{scene}",
+                   "--baseline-dir", f"data/baseline/{scene}", "--priors-dir", f"data/priors/{scene}",
+                   "--out-dir", f"data/speed_accuracy/{cell}/{scene}", "--report", str(report)]
+            before = provenance()
+            print(f"[sweep] {scene} {cell}: {' '.join(cmd)}", flush=True)
+            subprocess.run(cmd, check=True, env=env)
+            metrics = json.loads(report.read_text())
+            metrics["provenance"] = {**before, "load_average_1min_after": round(os.getloadavg()[0], 2)}
+            report.write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    rows = collect_cells(REPORTS, sweep.scenes, sweep.cells)
+    write_report(rows, Path("reports/speed_accuracy.csv"), Path("reports/speed_accuracy.png"))
+    print(f"[sweep] {len(rows)} cells -> reports/speed_accuracy.csv, reports/speed_accuracy.png")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,61 @@
+"""One cell of the ablation (Table II): a variant of the method trained, meshed and scored
+on one scene, from files to files. The variant's settings are partial sections merged over
+the main params (``pipeline.config.VariantConfig``); its init cloud is the init stage's
+dense cloud (``mvs``) or the baseline stage's sparse SIFT cloud (``sfm``)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+from pipeline import atomic
+from pipeline.config import (AblationConfig, ConfigError, EvaluateConfig, LossConfig, MeshConfig, OptimizeConfig,
+                             VariantConfig, merged_section, section)
+from pipeline.data.dtu import load_scene
+from pipeline.evaluation.scene_metrics import scene_metrics
+from pipeline.measure import measure
+from pipeline.meshing import tsdf
+from pipeline.meshing.surfels import mesh_from_surfels
+from pipeline.optimize.run import run_optimize, timing_report
+from pipeline.optimize.surfels import read_surfel_ply
+from pipeline.optimize.train import resolve_backend
+
+
+def variant_configs(params: dict, variant: str) -> tuple[VariantConfig, OptimizeConfig, LossConfig, MeshConfig]:
+    """The variant's own settings and the optimize, loss and mesh sections it runs with."""
+    ablation = section(AblationConfig, "ablation", params)
+    if variant not in ablation.variants:
+        raise ConfigError(f"ablation variant {variant!r} is not defined (defined: {sorted(ablation.variants)})")
+    v = ablation.variants[variant]
+    return (v, merged_section(OptimizeConfig, "optimize", params, v.optimize),
+            merged_section(LossConfig, "loss", params, v.loss), merged_section(MeshConfig, "mesh", params, v.mesh))
+
+
+def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, src_dir: str | Path,
+                gt_dir: str | Path | None, init_dirs: dict[str, str | Path], priors_dir: str | Path,
+                out_dir: str | Path, report: str | Path, input_views: list[int]) -> dict:
+    """Train, mesh and score ``variant`` on scene ``name``: writes ``out_dir/surfels`` and
+    ``out_dir/mesh`` (same bytes for the same inputs), the metrics to ``report`` and the
+    training time to ``report`` with suffix ``.train.json``. ``init_dirs`` maps each init
+    source (mvs, sfm) to the folder holding its ``points.ply``. Returns the metrics."""
+    v, opt, loss, mesh_cfg = variant_configs(params, variant)
+    out_dir, report = Path(out_dir), Path(report)
+    surfels_dir, mesh_dir = out_dir / "surfels", out_dir / "mesh"
+    timing_path = report.with_suffix(".train.json")
+    with measure(reset_peak=False) as usage:
+        result = run_optimize(scene_dir, init_dirs[v.init], priors_dir, surfels_dir, opt, loss,
+                              checkpoint=out_dir.parent / f".{out_dir.name}.ckpt.pt", live_dir=None, progress=False)
+    atomic.write_text(timing_path, json.dumps(timing_report(result, usage.as_dict(), opt.preset), indent=2) + "\n")
+
+    backend = resolve_backend(opt.backend)
+    scene = load_scene(scene_dir, view_ids=None)
+    mesh, info = mesh_from_surfels(read_surfel_ply(surfels_dir / "surfels.ply", scene.norm_to_world), scene,
+                                   mesh_cfg, backend)
+    with atomic.atomic_dir(mesh_dir) as tmp:
+        tsdf.write_mesh(tmp / "mesh.ply", mesh)
+        (tmp / "mesh.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
+
+    metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, timing_path,
+                            section(EvaluateConfig, "evaluate", params), opt, input_views, backend)
+    metrics["variant"] = {"name": variant, "init": v.init, "optimize": v.optimize, "loss": v.loss, "mesh": v.mesh}
+    atomic.write_text(report, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    return metrics

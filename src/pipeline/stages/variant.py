@@ -1,0 +1,33 @@
+"""``gcgs variant SCENE VARIANT``: one cell of the ablation (Table II): the variant trained,
+meshed and scored on one scene (params ``ablation``, docs/optimize.md)."""
+from __future__ import annotations
+
+import argparse
+
+from pipeline.config import ConfigError, DataConfig, SceneEntry, from_dict, load_params, section
+from pipeline.evaluation.variants import run_variant
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("name", help="scene name (a key of params `scenes`)")
+    p.add_argument("variant", help="variant name (a key of params `ablation.variants`)")
+    p.add_argument("--scene", required=True, help="prepared scene folder")
+    p.add_argument("--init-dir", required=True, help="init stage output (the mvs cloud)")
+    p.add_argument("--baseline-dir", required=True, help="the baseline stage's output (sfm/ and random/ clouds)")
+    p.add_argument("--priors-dir", required=True, help="priors stage output")
+    p.add_argument("--out-dir", required=True, help="writes surfels/ and mesh/")
+    p.add_argument("--report", required=True, help="metrics JSON (training time beside it, .train.json)")
+    p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
+
+
+def run(args: argparse.Namespace) -> int:
+    params = load_params(args.params)
+    scenes = params.get("scenes") or {}
+    if args.name not in scenes:
+        raise ConfigError(f"scene {args.name!r} is not in params `scenes` ({sorted(scenes)})")
+    entry = from_dict(SceneEntry, scenes[args.name], where=f"scenes.{args.name}")
+    m = run_variant(args.name, args.variant, params, args.scene, entry.src, entry.gt,
+                    {"mvs": args.init_dir, "sfm": f"{args.baseline_dir}/sfm", "random": f"{args.baseline_dir}/random"}, args.priors_dir, args.out_dir, args.report,
+                    section(DataConfig, "data", params).views)
+    print(f"variant {args.variant} on {args.name}: {m.get('chamfer', {}).get('overall_mm')} mm overall -> {args.report}")
+    return 0
