@@ -57,8 +57,11 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
                   "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
                   "mesh@scan24", "evaluate@scan24", "variant@synth_relief-baseline_2dgs",
-                  "variant@synth_relief-no_priors"):
+                  "variant@synth_relief-no_priors", "table2"):
         assert f"Running stage '{stage}'" in first
+    table2 = (tiny_repo / "reports/table2.csv").read_text().splitlines()
+    assert [line.split(",")[0] for line in table2] == ["row", "MVS + TSDF (classical)", "baseline_2dgs", "no_priors",
+                                                        "full method"]
     cell = json.loads((tiny_repo / "reports/variants/baseline_2dgs/synth_relief.json").read_text())
     assert cell["chamfer"]["overall_mm"] > 0 and cell["variant"]["init"] == "sfm"
     assert cell["train"]["iterations"] == 12 and cell["timing"]["wall_s"] > 0

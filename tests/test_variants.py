@@ -1,7 +1,10 @@
 """Ablation variants: a variant's partial sections merge over the main params, are
 validated like params values, and bad definitions fail with a message naming them."""
+import json
+
 import pytest
 
+from pipeline.errors import InputError
 from pipeline.config import AblationConfig, ConfigError, LossConfig, OptimizeConfig, merged_section, section
 from pipeline.evaluation.variants import variant_configs
 
@@ -41,3 +44,39 @@ def test_bad_ablation_definitions_are_named():
         AblationConfig(run=[], variants={"x": {"lr": 1}})
     with pytest.raises(ConfigError, match="'missing' is not defined"):
         variant_configs(BASE, "missing")
+
+
+def _write(path, data):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data))
+
+
+def test_table2_rows_components_and_mean(tmp_path):
+    from pipeline.evaluation.table2 import FULL, MVS_TSDF, build_table2, csv_text, markdown
+
+    scenes = ["a", "b"]
+    for s, (mvs, plain, full) in {"a": (3.0, 5.0, 1.0), "b": (2.0, 7.0, 2.0)}.items():
+        _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": {"overall_mm": mvs}}})
+        _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": {"overall_mm": plain}})
+        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {"overall_mm": full}})
+    ablation = AblationConfig(**BASE["ablation"])
+    rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
+                        tmp_path / "baseline")
+    assert [r["row"] for r in rows] == [MVS_TSDF, "plain", FULL]
+    assert [r["mean"] for r in rows] == [2.5, 6.0, 1.5]
+    assert (rows[1]["dense_init"], rows[1]["gcf"], rows[1]["nor"]) == (False, False, False)
+    assert (rows[2]["dense_init"], rows[2]["gcf"], rows[2]["nor"]) == (True, True, True)
+    assert csv_text(rows, scenes).splitlines()[2] == "plain,0,0,0,5.0000,7.0000,6.0000"
+    assert "| full method | yes | yes | yes | 1.000 | 2.000 | **1.500** |" in markdown(rows, scenes, "abc")
+
+
+def test_table2_names_a_missing_or_bad_report(tmp_path):
+    from pipeline.evaluation.table2 import build_table2
+
+    ablation = AblationConfig(**BASE["ablation"])
+    args = (BASE, ["a"], ablation.run, ablation.variants, tmp_path / "m", tmp_path / "v", tmp_path / "b")
+    with pytest.raises(InputError, match=r"b/a\.json: missing report"):
+        build_table2(*args)
+    _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": float("nan")}}})
+    with pytest.raises(InputError, match="not finite"):
+        build_table2(*args)

@@ -23,6 +23,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "optimize": ("pipeline.stages.optimize", "train 2D Gaussian surfels with the GCGS losses"),
     "mesh": ("pipeline.stages.mesh", "TSDF mesh (mm) of depth rendered from trained surfels"),
     "score": ("pipeline.stages.score", "per-scene metrics of the method (Chamfer or held-out views, cost)"),
+    "table2": ("pipeline.stages.table2", "Table II: the ablation on the synthetic suite (Markdown + CSV)"),
     "variant": ("pipeline.stages.variant", "one ablation cell: a variant trained, meshed and scored on one scene"),
     "bench-eval": ("pipeline.benchmarks.evaluation", "benchmark the Chamfer evaluation"),
     "bench-raster": ("pipeline.benchmarks.rasterizer", "benchmark the surfel rasterizer"),
