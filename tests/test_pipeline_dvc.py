@@ -23,7 +23,7 @@ def _dvc(cwd: Path, *args: str) -> str:
 @pytest.fixture(scope="module")
 def tiny_repo(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("pipeline")
-    for rel in ("dvc.yaml", "src", "data/raw", "models"):
+    for rel in ("dvc.yaml", "src", "data/raw", "data/published", "models"):
         src = REPO / rel
         if src.is_dir():
             shutil.copytree(src, root / rel, ignore=shutil.ignore_patterns("__pycache__", "*.onnx"))
@@ -53,7 +53,7 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
                   "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
-                  "mesh@scan24", "evaluate@scan24"):
+                  "mesh@scan24", "evaluate@scan24", "table1"):
         assert f"Running stage '{stage}'" in first
     metrics = json.loads((tiny_repo / "reports/metrics/synth_relief.json").read_text())
     assert metrics["chamfer"]["overall_mm"] > 0 and metrics["train"]["iterations"] == 12

@@ -80,11 +80,12 @@ class Table1:
 # --- reading ------------------------------------------------------------------------------
 
 
-def read_json(path: str | Path, what: str) -> dict:
-    """A JSON object from ``path``; missing or malformed files raise naming the file."""
+def read_json(path: str | Path, what: str, made_by: str = "") -> dict:
+    """A JSON object from ``path``; missing or malformed files raise naming the file
+    (and, when missing, ``made_by``: what writes it)."""
     path = Path(path)
     if not path.is_file():
-        raise MissingInputError(f"{path}: no {what} (file not found)")
+        raise MissingInputError(f"{path}: no {what} (file not found{'; ' + made_by if made_by else ''})")
     try:
         data = json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
@@ -181,7 +182,7 @@ def build_table1(scenes: dict[str, dict], metrics_dir: str | Path, baseline_dir:
     method, baseline, settings, heldout = {}, {}, {}, []
     for name in scenes:
         path = metrics_dir / f"{name}.json"
-        m = read_json(path, f"metrics of scene {name} (run the evaluate stage)")
+        m = read_json(path, f"metrics of scene {name}", "run the evaluate stage")
         settings[name] = m.get("train", {})
         if name in with_gt:
             method[name] = figure(m, "chamfer.overall_mm", path)
@@ -189,7 +190,7 @@ def build_table1(scenes: dict[str, dict], metrics_dir: str | Path, baseline_dir:
                 notes.append(f"{name}: the method's evaluation was flagged invalid ({path}: "
                              f"{'; '.join(m['chamfer'].get('problems') or ['no reason given'])})")
             bpath = baseline_dir / f"{name}.json"
-            b = read_json(bpath, f"baseline report of scene {name} (run the baseline stage)")
+            b = read_json(bpath, f"baseline report of scene {name}", "run the baseline stage")
             if b.get("evaluate", {}).get("metrics"):
                 baseline[name] = (figure(b, "evaluate.metrics.overall_mm", bpath), b.get("commit", "unknown"))
             else:
