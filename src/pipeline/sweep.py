@@ -14,6 +14,7 @@ removes the worktree.
 from __future__ import annotations
 
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -42,8 +43,8 @@ def cell_params(config: dict, scene: str) -> dict:
     return params
 
 
-def _run(cmd: list[str], cwd: Path) -> str:
-    res = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True)
+def _run(cmd: list[str], cwd: Path, env: dict | None = None) -> str:
+    res = subprocess.run(cmd, cwd=cwd, capture_output=True, text=True, env=env)
     if res.returncode != 0:
         raise RuntimeError(f"`{' '.join(cmd)}` in {cwd} failed ({res.returncode}):\n{res.stdout}\n{res.stderr}")
     return res.stdout
@@ -71,9 +72,13 @@ def run_cell(params: dict, scene: str, stage: str, out_dir: Path, repo: Path) ->
         _run([dvc, "cache", "dir", "--local", cache], cell)
         (cell / "params.yaml").write_text(dump_params(params))
         (out_dir / "params.yaml").write_text(dump_params(params))
-        log = _run([dvc, "repro", f"{stage}@{scene}"], cell)
-        (out_dir / "dvc_repro.log").write_text(log)
+        # The committed metrics are not this cell's: only the evaluate stage may write them back.
         metrics = cell / "reports" / "metrics" / f"{scene}.json"
+        metrics.unlink(missing_ok=True)
+        # The stages' `gcgs` must import the worktree's code, not an installed or PYTHONPATH copy.
+        env = os.environ | {"PYTHONPATH": str(cell / "src")}
+        log = _run([dvc, "repro", f"{stage}@{scene}"], cell, env)
+        (out_dir / "dvc_repro.log").write_text(log)
         if not metrics.is_file():  # a stage upstream of evaluate
             return {}
         shutil.copy(metrics, out_dir / "metrics.json")
