@@ -20,6 +20,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "baseline": ("pipeline.stages.baseline", "one scene's init clouds of every backend and MVS+TSDF mesh vs GT, timed"),
     "baseline-report": ("pipeline.stages.baseline_report", "combine the per-scene baseline reports into one table"),
     "table1": ("pipeline.stages.table1", "Table I: Chamfer per scene measured here next to published figures"),
+    "render-scene": ("pipeline.stages.render_scene", "a scene's input view, surfel colour and normal, mesh (PNG)"),
+    "report-index": ("pipeline.stages.report_index", "reports/index.md: tables, plots, renders, curves"),
     "priors": ("pipeline.stages.priors", "per-view normal and feature priors (default, dsine, vismvsnet)"),
     "optimize": ("pipeline.stages.optimize", "train 2D Gaussian surfels with the GCGS losses"),
     "mesh": ("pipeline.stages.mesh", "TSDF mesh (mm) of depth rendered from trained surfels"),
