@@ -23,7 +23,7 @@ def _dvc(cwd: Path, *args: str) -> str:
 @pytest.fixture(scope="module")
 def tiny_repo(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("pipeline")
-    for rel in ("dvc.yaml", "src", "data/raw", "models"):
+    for rel in ("dvc.yaml", "src", "data/raw", "data/published", "models"):
         src = REPO / rel
         if src.is_dir():
             shutil.copytree(src, root / rel, ignore=shutil.ignore_patterns("__pycache__", "*.onnx"))
@@ -57,7 +57,7 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
                   "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
                   "mesh@scan24", "evaluate@scan24", "variant@synth_relief-baseline_2dgs",
-                  "variant@synth_relief-no_priors", "table2"):
+                  "variant@synth_relief-no_priors", "table1", "table2"):
         assert f"Running stage '{stage}'" in first
     table2 = (tiny_repo / "reports/table2.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in table2] == ["row", "MVS + TSDF (classical)", "baseline_2dgs", "no_priors",
