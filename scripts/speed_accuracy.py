@@ -28,6 +28,8 @@ def main() -> int:
     ap.add_argument("--only", nargs="*", default=None, help="run only these cells")
     ap.add_argument("--force", action="store_true", help="rerun cells whose report exists")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the CSV and plot")
+    ap.add_argument("--inputs", default="data", help="folder holding scenes/, init/, priors/, baseline/ of each "
+                    "scene (default: data; a copy keeps the sweep apart from a running dvc repro)")
     args = ap.parse_args()
     sweep = section(AblationConfig, "ablation", load_params()).speed_accuracy
     for scene in sweep.scenes:
@@ -36,8 +38,9 @@ def main() -> int:
             if args.report_only or (args.only is not None and cell not in args.only) or (report.is_file() and not args.force):
                 continue
             env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
-            cmd = ["gcgs", "variant", scene, cell, "--scene", f"data/scenes/{scene}", "--init-dir", f"data/init/{scene}",
-                   "--baseline-dir", f"data/baseline/{scene}", "--priors-dir", f"data/priors/{scene}",
+            src = args.inputs
+            cmd = ["gcgs", "variant", scene, cell, "--scene", f"{src}/scenes/{scene}", "--init-dir", f"{src}/init/{scene}",
+                   "--baseline-dir", f"{src}/baseline/{scene}", "--priors-dir", f"{src}/priors/{scene}",
                    "--out-dir", f"data/speed_accuracy/{cell}/{scene}", "--report", str(report)]
             before = provenance()
             print(f"[sweep] {scene} {cell}: {' '.join(cmd)}", flush=True)
