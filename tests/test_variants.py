@@ -80,3 +80,17 @@ def test_table2_names_a_missing_or_bad_report(tmp_path):
     _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": float("nan")}}})
     with pytest.raises(InputError, match="not finite"):
         build_table2(*args)
+
+
+@pytest.mark.parametrize("preset, cell", [("quick", "sa_it150"), ("balanced", "sa_it1000")])
+def test_presets_are_the_sweep_cells_they_cite(preset, cell):
+    """conf/optimize/{quick,balanced}.yaml must stay the settings measured as their sweep cell."""
+    import dataclasses
+
+    from pipeline.config import OptimizeConfig, compose_params, load_params
+
+    preset_cfg = dataclasses.asdict(section(OptimizeConfig, "optimize", compose_params([f"optimize={preset}"])))
+    cell_cfg = dataclasses.asdict(variant_configs(load_params(), cell)[1])
+    assert preset_cfg.pop("preset") == preset
+    cell_cfg.pop("preset")
+    assert preset_cfg == cell_cfg
