@@ -23,7 +23,7 @@ def _dvc(cwd: Path, *args: str) -> str:
 @pytest.fixture(scope="module")
 def tiny_repo(tmp_path_factory) -> Path:
     root = tmp_path_factory.mktemp("pipeline")
-    for rel in ("dvc.yaml", "src", "data/raw", "data/published", "models"):
+    for rel in ("dvc.yaml", "src", "data/raw", "data/published", "models", "reports/speed_accuracy.png"):
         src = REPO / rel
         if src.is_dir():
             shutil.copytree(src, root / rel, ignore=shutil.ignore_patterns("__pycache__", "*.onnx"))
