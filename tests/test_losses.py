@@ -37,13 +37,17 @@ def tiny():
     return H, W, K, cams, feats, depth
 
 
-def reference_gcf(depth, K, cams, feats, image_size, valid=None):
+def reference_gcf(depth, K, cams, feats, image_size, valid=None, weight_depth=None):
     """Loop-based Eq. 4-9 with scipy's bilinear interpolation (independent of torch), over
-    the pixels in ``valid`` (default: all)."""
+    the pixels in ``valid`` (default: all) whose reference feature is not zero; a zero
+    source feature adds nothing. The view weights w come from ``weight_depth`` (default:
+    ``depth``), so that finite differences with it fixed give the gradient of the loss
+    whose weights are constants."""
     H, W = depth.shape
     o = [geometry.camera_center(T) for T in cams]
     pts = geometry.backproject_depth(K, cams[0], depth).reshape(-1, 3)
-    use = np.ones(H * W, bool) if valid is None else valid.reshape(-1)
+    pts_w = geometry.backproject_depth(K, cams[0], depth if weight_depth is None else weight_depth).reshape(-1, 3)
+    use = np.ones(H * W, bool) if valid is None else valid.reshape(-1).copy()
     s = feats[0].shape[2] / image_size[1]
 
     def bilinear(f, x, y):
@@ -57,18 +61,22 @@ def reference_gcf(depth, K, cams, feats, image_size, valid=None):
         if not use[n]:
             continue
         fr = bilinear(feats[0], n % W, n // W)
-        v_ref = (x - o[0]) / np.linalg.norm(x - o[0])
+        if not np.any(fr):
+            use[n] = False
+            continue
+        xw = pts_w[n]
+        v_ref = (xw - o[0]) / np.linalg.norm(xw - o[0])
         for i in (1, 2):
             px, z = geometry.project(K, cams[i], x[None])
             if z[0] <= 0:
                 continue
             fi = bilinear(feats[i], *px[0])
-            if fi is None:
+            if fi is None or not np.any(fi):
                 continue
-            v_i = (x - o[i]) / np.linalg.norm(x - o[i])
+            v_i = (xw - o[i]) / np.linalg.norm(xw - o[i])
             w = max(0.0, v_ref @ v_i)
             total += w * (1 - fr @ fi / (np.linalg.norm(fr) * np.linalg.norm(fi)))
-    return total / use.sum()
+    return total / max(use.sum(), 1)
 
 
 def test_gcf_matches_independent_reference(tiny):
@@ -122,7 +130,12 @@ def test_gcf_ignores_points_behind_or_outside_sources(tiny):
     mask[1] = False
     src = [(K, cams[i], t(feats[i])) for i in (1, 2)]
     _, terms, points = gcf_loss(t(d), K, cams[0], t(feats[0]), src, valid=torch.from_numpy(mask), return_terms=True)
-    assert points.sum() == H * W - 1 - W and terms.shape == (H * W - 1 - W,)
+    # Points: in the mask, depth > 0, and inside the 1/2-resolution feature map (its
+    # centres span image pixels 0.5 .. W - 1.5, so the outermost ring of pixels is out).
+    expect = np.zeros((H, W), bool)
+    expect[1:-1, 1:-1] = True
+    expect &= mask
+    assert torch.equal(points, torch.from_numpy(expect)) and terms.shape == (expect.sum(),)
     assert torch.isfinite(terms).all()
     with pytest.raises(ValueError, match="non-finite depth inside the validity mask"):
         gcf_loss(t(d), K, cams[0], t(feats[0]), src, valid=np.ones((H, W), bool))
@@ -183,16 +196,52 @@ def test_sample_features_pixel_centres():
     assert inside.tolist() == [True, True, True, True, False, False]
 
 
-def test_gcf_gradcheck(tiny):
+def test_gcf_gradient_matches_reference_with_constant_weights(tiny):
+    """The depth gradient is the finite-difference gradient of the reference loss with the
+    view weights w held at the current depth (w is a confidence, not a target)."""
     H, W, K, cams, feats, depth = tiny
+    feats = [f.copy() for f in feats]
+    feats[0][:, :2, :3] = 0.0  # flat at image pixels rows 1-2, columns 1-4: no gradient there
     t = torch.from_numpy
     src = [(t(K), t(cams[i]), t(feats[i])) for i in (1, 2)]
     d = t(depth).requires_grad_()
-    valid = np.ones((H, W), bool)
-    assert torch.autograd.gradcheck(lambda x: gcf_loss(x, K, cams[0], t(feats[0]), src, valid=valid), (d,),
-                                    eps=1e-6, atol=1e-7)
-    g, = torch.autograd.grad(gcf_loss(d, K, cams[0], t(feats[0]), src, valid=valid), d)
+    g, = torch.autograd.grad(gcf_loss(d, K, cams[0], t(feats[0]), src, valid=np.ones((H, W), bool)), d)
+    eps = 1e-5
+    fd = np.zeros_like(depth)
+    for k in range(depth.size):
+        step = np.zeros_like(depth)
+        step.flat[k] = eps
+        fd.flat[k] = (reference_gcf(depth + step, K, cams, feats, (H, W), weight_depth=depth)
+                      - reference_gcf(depth - step, K, cams, feats, (H, W), weight_depth=depth)) / (2 * eps)
+    np.testing.assert_allclose(g.numpy(), fd, atol=1e-7, rtol=1e-4)
     assert torch.count_nonzero(g) >= H * W // 3  # depth really drives the loss
+    assert torch.count_nonzero(g[1:3, 1:5]) == 0 and torch.count_nonzero(g[3, 1:5]) == 4
+    # With the weights' own gradient (the undetached w) the result would differ:
+    with_w = np.zeros_like(depth)
+    for k in range(depth.size):
+        step = np.zeros_like(depth)
+        step.flat[k] = eps
+        with_w.flat[k] = (reference_gcf(depth + step, K, cams, feats, (H, W))
+                          - reference_gcf(depth - step, K, cams, feats, (H, W))) / (2 * eps)
+    assert np.abs(with_w - fd).max() > 1e-3 * np.abs(fd).max()
+
+
+def test_gcf_flat_features_neither_count_nor_pull():
+    """Textureless everywhere (all-zero features): no point, loss 0 and no depth gradient,
+    rather than a loss equal to the view weight that pulls depth towards the cameras."""
+    H, W = 6, 8
+    K = np.array([[9.0, 0.0, 3.6], [0.0, 9.0, 2.4], [0.0, 0.0, 1.0]])
+    target = np.array([0.0, 0.0, 100.0])
+    cams = [look_at(np.array(c), target) for c in ([0.0, 0, 0], [15.0, 2, 3], [-12.0, -5, 4])]
+    zero = torch.zeros(4, H // 2, W // 2, dtype=torch.float64)
+    rich = torch.from_numpy(np.random.default_rng(0).normal(size=(4, H // 2, W // 2)))
+    d = torch.full((H, W), 100.0, dtype=torch.float64, requires_grad=True)
+    for ref, srcf in ((zero, rich), (rich, zero)):
+        loss, terms, points = gcf_loss(d, K, cams[0], ref, [(K, cams[i], srcf) for i in (1, 2)],
+                                       valid=np.ones((H, W), bool), return_terms=True)
+        g, = torch.autograd.grad(loss, d)
+        assert float(loss.detach()) == 0.0 and torch.count_nonzero(g) == 0
+        assert int(points.sum()) == (0 if ref is zero else (H - 2) * (W - 2))  # the ring is off the map
 
 
 def test_normal_losses_values():

@@ -55,10 +55,13 @@ def test_table2_rows_components_and_mean(tmp_path):
     from pipeline.evaluation.table2 import FULL, MVS_TSDF, build_table2, csv_text, markdown
 
     scenes = ["a", "b"]
+    def counts(used):
+        return {"counts": {"completeness_used": used, "gt_above_plane": 200}}
+
     for s, (mvs, plain, full) in {"a": (3.0, 5.0, 1.0), "b": (2.0, 7.0, 2.0)}.items():
-        _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": {"overall_mm": mvs}}})
-        _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": {"overall_mm": plain}})
-        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {"overall_mm": full}})
+        _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": {"overall_mm": mvs, **counts(50)}}})
+        _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": {"overall_mm": plain, **counts(100)}})
+        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {"overall_mm": full, **counts(150)}})
     ablation = AblationConfig(**BASE["ablation"])
     rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
                         tmp_path / "baseline")
@@ -66,8 +69,11 @@ def test_table2_rows_components_and_mean(tmp_path):
     assert [r["mean"] for r in rows] == [2.5, 6.0, 1.5]
     assert (rows[1]["dense_init"], rows[1]["gcf"], rows[1]["nor"]) == (False, False, False)
     assert (rows[2]["dense_init"], rows[2]["gcf"], rows[2]["nor"]) == (True, True, True)
-    assert csv_text(rows, scenes).splitlines()[2] == "plain,0,0,0,5.0000,7.0000,6.0000"
-    assert "| full method | yes | yes | yes | 1.000 | 2.000 | **1.500** |" in markdown(rows, scenes, "abc")
+    assert [r["covered"] for r in rows] == [{"a": 0.25, "b": 0.25}, {"a": 0.5, "b": 0.5}, {"a": 0.75, "b": 0.75}]
+    assert csv_text(rows, scenes).splitlines()[2] == "plain,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000"
+    md = markdown(rows, scenes, "abc")
+    assert "| full method | yes | yes | yes | 1.000 | 2.000 | **1.500** |" in md
+    assert f"| {MVS_TSDF} | 0.25 | 0.25 |" in md
 
 
 def test_table2_names_a_missing_or_bad_report(tmp_path):
@@ -75,10 +81,13 @@ def test_table2_names_a_missing_or_bad_report(tmp_path):
 
     ablation = AblationConfig(**BASE["ablation"])
     args = (BASE, ["a"], ablation.run, ablation.variants, tmp_path / "m", tmp_path / "v", tmp_path / "b")
-    with pytest.raises(InputError, match=r"b/a\.json: missing report"):
+    with pytest.raises(InputError, match=r"b/a\.json: no report \(file not found; run `dvc repro` first\)"):
         build_table2(*args)
     _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": float("nan")}}})
-    with pytest.raises(InputError, match="not finite"):
+    with pytest.raises(InputError, match="must be a finite number"):
+        build_table2(*args)
+    _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": 1.0}}})  # no counts
+    with pytest.raises(InputError, match="b/a.json: missing `completeness_used`"):
         build_table2(*args)
 
 

@@ -350,6 +350,14 @@ class SceneEntry:
     gt: str | None = None
 
 
+def scene_entry(params: dict, name: str) -> SceneEntry:
+    """Scene ``name`` of params ``scenes``; a ConfigError naming the known ones if absent."""
+    scenes = params.get("scenes") or {}
+    if name not in scenes:
+        raise ConfigError(f"scene {name!r} is not in params `scenes` ({sorted(scenes)})")
+    return from_dict(SceneEntry, scenes[name], where=f"scenes.{name}")
+
+
 # Top-level params.yaml sections and their typed configs (``scenes`` maps names to entries).
 @dataclass
 class VariantConfig:

@@ -53,6 +53,11 @@ def sample_features(feats: torch.Tensor, pix: torch.Tensor, image_size: tuple[in
     return vals.view(C, -1), inside
 
 
+def _nonzero(f: torch.Tensor) -> torch.Tensor:
+    """``(N,)`` bool: which columns of ``(C, N)`` features are not (numerically) zero."""
+    return (f * f).sum(0) > COS_EPS * COS_EPS
+
+
 def cosine(a: torch.Tensor, b: torch.Tensor, dim: int = 0) -> torch.Tensor:
     """Cosine similarity along ``dim``; 0 where either vector is (numerically) zero."""
     num = (a * b).sum(dim)
@@ -84,6 +89,17 @@ def gcf_loss(
     feature sampling (:func:`sample_features`). A point behind a source camera or
     projecting outside its feature map contributes nothing for that source.
 
+    Two choices the paper leaves open, both so that the loss only moves depth where the
+    features carry information:
+
+    * ``w`` is a confidence and is held constant (detached). Its own depth gradient
+      would reward moving every point towards the cameras (the ray angle grows, ``w``
+      shrinks) whatever the features say.
+    * A zero feature vector (a flat patch, :mod:`pipeline.priors.features`) has no
+      cosine: a reference pixel with one (or outside its feature map: the half-pixel
+      border of a 1/2-resolution map) is not a point, a source sample with one
+      contributes nothing. Counted as ``1 - 0`` they would add ``w`` and its bias.
+
     Args:
         depth_ref: ``(H, W)`` camera-frame z in mm, finite where ``valid``.
         K_ref, world_to_cam_ref: ``(3, 3)`` intrinsics at ``(H, W)``, ``(4, 4)`` world(mm)
@@ -97,10 +113,10 @@ def gcf_loss(
             ``valid`` raises ``ValueError``.
         ref_image_size: image size ``feats_ref`` refers to, default ``(H, W)``.
         return_terms: also return the per-point sum over sources ``(N,)`` and the ``(H, W)``
-            point mask (``valid & (depth > 0)``).
+            point mask (``valid & (depth > 0)`` and a non-zero reference feature).
 
-    Returns the mean over the N valid reference points of ``sum_i w (1 - cos)`` (0 when
-    there is none).
+    Returns the mean over the N reference points (valid, depth > 0, a non-zero feature) of
+    ``sum_i w (1 - cos)`` (0 when there is none).
     """
     H, W = depth_ref.shape
     z = depth_ref.reshape(-1)
@@ -110,11 +126,15 @@ def gcf_loss(
     mask = mask.reshape(-1)
     if not torch.isfinite(z[mask]).all():
         raise ValueError("gcf_loss: non-finite depth inside the validity mask (no depth is 0, outside the mask)")
-    points = mask & (z > 0)
-    idx = torch.nonzero(points).squeeze(1)
-    zs = z[idx]
+    idx = torch.nonzero(mask & (z > 0)).squeeze(1)
     ys = torch.div(idx, W, rounding_mode="floor").to(z.dtype)
     xs = (idx % W).to(z.dtype)
+    f_ref, inside_ref = sample_features(feats_ref.to(z.dtype), torch.stack([xs, ys], -1), ref_image_size or (H, W))
+    informative = inside_ref & _nonzero(f_ref)
+    idx, xs, ys, f_ref = idx[informative], xs[informative], ys[informative], f_ref[:, informative]
+    points = torch.zeros_like(mask)
+    points[idx] = True
+    zs = z[idx]
     K = _t(K_ref, z)
     T = _t(world_to_cam_ref, z)
     pix_h = torch.stack([xs, ys, torch.ones_like(xs)], -1)
@@ -124,7 +144,6 @@ def gcf_loss(
     x_world = (x_cam - t) @ R  # R^T (x_cam - t), row vectors
     o_ref = -R.t() @ t
     v_ref = F.normalize(x_world - o_ref, dim=1)
-    f_ref, _ = sample_features(feats_ref.to(z.dtype), torch.stack([xs, ys], -1), ref_image_size or (H, W))
 
     total = torch.zeros_like(zs)
     for src in sources:
@@ -139,9 +158,9 @@ def gcf_loss(
         f_i, inside = sample_features(feats_i, p_i, size_i)
         o_i = -R_i.t() @ t_i
         v_i = F.normalize(x_world - o_i, dim=1)
-        w = (v_ref * v_i).sum(1).clamp_min(0.0)
+        w = (v_ref * v_i).sum(1).clamp_min(0.0).detach()
         term = w * (1.0 - cosine(f_ref, f_i))
-        total = total + torch.where(front & inside, term, torch.zeros_like(term))
+        total = total + torch.where(front & inside & _nonzero(f_i), term, torch.zeros_like(term))
     loss = total.sum() / max(len(idx), 1)
     if return_terms:
         return loss, total, points.view(H, W)

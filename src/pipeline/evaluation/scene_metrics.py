@@ -36,7 +36,8 @@ def scene_metrics(name: str, scene_dir: str | Path, src_dir: str | Path, gt_dir:
         vertices, triangles = gt.read_mesh(mesh_dir / "mesh.ply")
         m = dtu_eval.evaluate_mesh(vertices, triangles, ground, eval_cfg, views=cull, log=log,
                                    name=str(mesh_dir / "mesh.ply"))
-        out["chamfer"] = {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems")}
+        out["chamfer"] = {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems",
+                                            "counts")}
     else:
         scene = dtu.load_scene(scene_dir, view_ids=None)
         heldout = load_heldout(src_dir, scene.view_ids, HELDOUT_WIDTH)

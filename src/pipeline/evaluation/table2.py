@@ -8,30 +8,23 @@ from __future__ import annotations
 
 import csv
 import io
-import json
-import math
 from pathlib import Path
 
 from pipeline.config import LossConfig, VariantConfig, merged_section
-from pipeline.errors import InputError
+from pipeline.evaluation.tables import covered_fraction, figure, read_json
 
 MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
 
 
-def _overall(path: Path, keys: tuple[str, ...]) -> float:
-    if not path.is_file():
-        raise InputError(f"{path}: missing report (run `dvc repro` first)")
-    try:
-        node = json.loads(path.read_text())
-        for k in keys:
-            node = node[k]
-        value = float(node)
-    except (json.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"{path}: no {'.'.join(keys)} ({exc})") from exc
-    if not math.isfinite(value):
-        raise InputError(f"{path}: {'.'.join(keys)} is not finite ({value})")
-    return value
+def _cell(path: Path, chamfer: str) -> tuple[float, float]:
+    """(overall Chamfer mm, GT covered fraction) of the report at ``path``, whose Chamfer
+    figures sit under the dotted key ``chamfer``."""
+    data = read_json(path, "report", "run `dvc repro` first")
+    counts = data
+    for k in chamfer.split("."):
+        counts = counts.get(k, {}) if isinstance(counts, dict) else {}
+    return figure(data, f"{chamfer}.overall_mm", path), covered_fraction(counts.get("counts", {}), path)
 
 
 def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool | None]:
@@ -42,16 +35,19 @@ def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool |
 
 def build_table2(params: dict, scenes: list[str], run: list[str], variants: dict[str, VariantConfig],
                  metrics_dir: str | Path, variants_dir: str | Path, baseline_dir: str | Path) -> list[dict]:
-    """Rows ``{"row", "dense_init", "gcf", "nor", SCENE: mm ..., "mean": mm}``."""
-    rows = [{"row": MVS_TSDF, "dense_init": None, "gcf": None, "nor": None,
-             **{s: _overall(Path(baseline_dir) / f"{s}.json", ("evaluate", "metrics", "overall_mm")) for s in scenes}}]
-    for name in run:
-        rows.append({"row": name, **_components(params, variants[name]),
-                     **{s: _overall(Path(variants_dir) / name / f"{s}.json", ("chamfer", "overall_mm")) for s in scenes}})
-    rows.append({"row": FULL, **_components(params, None),
-                 **{s: _overall(Path(metrics_dir) / f"{s}.json", ("chamfer", "overall_mm")) for s in scenes}})
-    for r in rows:
-        r["mean"] = sum(r[s] for s in scenes) / len(scenes)
+    """Rows ``{"row", "dense_init", "gcf", "nor", SCENE: mm ..., "mean": mm, "covered":
+    {SCENE: fraction}}`` (``covered``: :func:`~pipeline.evaluation.tables.covered_fraction`)."""
+    sources = [(MVS_TSDF, None, lambda s: Path(baseline_dir) / f"{s}.json", "evaluate.metrics")]
+    sources += [(name, variants[name], lambda s, n=name: Path(variants_dir) / n / f"{s}.json", "chamfer")
+                for name in run]
+    sources.append((FULL, None, lambda s: Path(metrics_dir) / f"{s}.json", "chamfer"))
+    rows = []
+    for row, variant, path_of, chamfer in sources:
+        cells = {s: _cell(path_of(s), chamfer) for s in scenes}
+        flags = {"dense_init": None, "gcf": None, "nor": None} if row == MVS_TSDF else _components(params, variant)
+        rows.append({"row": row, **flags, **{s: cells[s][0] for s in scenes},
+                     "mean": sum(cells[s][0] for s in scenes) / len(scenes),
+                     "covered": {s: cells[s][1] for s in scenes}})
     return rows
 
 
@@ -71,14 +67,22 @@ def markdown(rows: list[dict], scenes: list[str], commit: str) -> str:
         cells = [r["row"], _mark(r["dense_init"]), _mark(r["gcf"]), _mark(r["nor"]),
                  *(f"{r[s]:.3f}" for s in scenes), (f"**{r['mean']:.3f}**" if r["mean"] == best else f"{r['mean']:.3f}")]
         lines.append("| " + " | ".join(cells) + " |")
+    lines += ["", "**How much of each object those figures cover**: the fraction of ground-truth points "
+              "within `evaluate.max_dist_mm` of the mesh. The DTU protocol leaves the others out of "
+              "completeness, so a mesh that omits a region it cannot reconstruct (the classical "
+              "baseline on the textureless dome) is not charged for it; the ground truth also holds "
+              "sides that no input view sees, so no row reaches 1.", "",
+              "| row | " + " | ".join(scenes) + " |", "|" + " --- |" * (len(scenes) + 1)]
+    for r in rows:
+        lines.append(f"| {r['row']} | " + " | ".join(f"{r['covered'][s]:.2f}" for s in scenes) + " |")
     return "\n".join(lines) + "\n"
 
 
 def csv_text(rows: list[dict], scenes: list[str]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
-    w.writerow(["row", "dense_init", "gcf", "nor", *scenes, "mean"])
+    w.writerow(["row", "dense_init", "gcf", "nor", *scenes, "mean", *(f"{s}_covered" for s in scenes)])
     for r in rows:
         w.writerow([r["row"], *("" if r[k] is None else int(r[k]) for k in ("dense_init", "gcf", "nor")),
-                    *(f"{r[s]:.4f}" for s in scenes), f"{r['mean']:.4f}"])
+                    *(f"{r[s]:.4f}" for s in scenes), f"{r['mean']:.4f}", *(f"{r['covered'][s]:.4f}" for s in scenes)])
     return buf.getvalue()

@@ -34,6 +34,17 @@ MEAN_DTU = "mean_dtu"
 PUBLISHED_COLUMNS = ("method", "mean_mm", "source", "note")
 
 
+def covered_fraction(counts: dict, path: str | Path) -> float:
+    """Fraction of the GT points (above the plane) within ``max_dist`` of the mesh, from
+    :func:`pipeline.evaluation.dtu_eval.evaluate_mesh`'s ``counts``. The DTU protocol leaves
+    the other GT points out of completeness, so a mesh missing a region entirely is not
+    penalised for it: this fraction says how much of the object a Chamfer figure covers."""
+    used, total = figure(counts, "completeness_used", path), figure(counts, "gt_above_plane", path)
+    if total <= 0:
+        raise ReportError(f"{path}: `gt_above_plane` must be positive, got {total}")
+    return used / total
+
+
 class ReportError(InputError):
     """A report or data file that cannot be read or lacks a figure; names the file."""
 

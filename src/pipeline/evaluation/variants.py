@@ -1,7 +1,8 @@
 """One cell of the ablation (Table II): a variant of the method trained, meshed and scored
 on one scene, from files to files. The variant's settings are partial sections merged over
 the main params (``pipeline.config.VariantConfig``); its init cloud is the init stage's
-dense cloud (``mvs``) or the baseline stage's sparse SIFT cloud (``sfm``)."""
+dense cloud (``mvs``), or the baseline stage's sparse SIFT cloud (``sfm``) or random
+points in the bounding sphere (``random``)."""
 from __future__ import annotations
 
 import json
@@ -10,13 +11,10 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.config import (AblationConfig, ConfigError, EvaluateConfig, LossConfig, MeshConfig, OptimizeConfig,
                              VariantConfig, merged_section, section)
-from pipeline.data.dtu import load_scene
 from pipeline.evaluation.scene_metrics import scene_metrics
 from pipeline.measure import measure
-from pipeline.meshing import tsdf
-from pipeline.meshing.surfels import mesh_from_surfels
+from pipeline.meshing.surfels import mesh_surfels_dir
 from pipeline.optimize.run import run_optimize, timing_report
-from pipeline.optimize.surfels import read_surfel_ply
 from pipeline.optimize.train import resolve_backend
 
 
@@ -36,7 +34,7 @@ def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, sr
     """Train, mesh and score ``variant`` on scene ``name``: writes ``out_dir/surfels`` and
     ``out_dir/mesh`` (same bytes for the same inputs), the metrics to ``report`` and the
     training time to ``report`` with suffix ``.train.json``. ``init_dirs`` maps each init
-    source (mvs, sfm) to the folder holding its ``points.ply``. Returns the metrics."""
+    source (mvs, sfm, random) to the folder holding its ``points.ply``. Returns the metrics."""
     v, opt, loss, mesh_cfg = variant_configs(params, variant)
     out_dir, report = Path(out_dir), Path(report)
     surfels_dir, mesh_dir = out_dir / "surfels", out_dir / "mesh"
@@ -47,12 +45,7 @@ def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, sr
     atomic.write_text(timing_path, json.dumps(timing_report(result, usage.as_dict(), opt.preset), indent=2) + "\n")
 
     backend = resolve_backend(opt.backend)
-    scene = load_scene(scene_dir, view_ids=None)
-    mesh, info = mesh_from_surfels(read_surfel_ply(surfels_dir / "surfels.ply", scene.norm_to_world), scene,
-                                   mesh_cfg, backend)
-    with atomic.atomic_dir(mesh_dir) as tmp:
-        tsdf.write_mesh(tmp / "mesh.ply", mesh)
-        (tmp / "mesh.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
+    mesh_surfels_dir(scene_dir, surfels_dir, mesh_dir, mesh_cfg, backend)
 
     metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, timing_path,
                             section(EvaluateConfig, "evaluate", params), opt, input_views, backend)

@@ -11,8 +11,7 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import EvaluateConfig, InitConfig, MeshConfig, SceneEntry, from_dict, load_params, section
-from pipeline.errors import ConfigError
+from pipeline.config import EvaluateConfig, InitConfig, MeshConfig, load_params, scene_entry, section
 from pipeline.evaluation import baseline
 from pipeline.measure import provenance
 
@@ -32,10 +31,7 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     eval_cfg = section(EvaluateConfig, "evaluate", params)
     init_cfg = section(InitConfig, "init", params)
-    scenes = params.get("scenes") or {}
-    if args.scene not in scenes:
-        raise ConfigError(f"scene {args.scene!r} not in params `scenes` ({sorted(scenes)})")
-    entry = from_dict(SceneEntry, scenes[args.scene], where=f"scenes.{args.scene}")
+    entry = scene_entry(params, args.scene)
     name = args.scene
     usage_path = Path(args.init_metrics or f"reports/init/{name}.json")
     init_usage = json.loads(usage_path.read_text()) if usage_path.is_file() else None

@@ -8,8 +8,7 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import DataConfig, EvaluateConfig, OptimizeConfig, SceneEntry, from_dict, load_params, section
-from pipeline.errors import ConfigError
+from pipeline.config import DataConfig, EvaluateConfig, OptimizeConfig, load_params, scene_entry, section
 from pipeline.evaluation.scene_metrics import scene_metrics
 from pipeline.optimize.train import resolve_backend
 
@@ -26,10 +25,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
-    scenes = params.get("scenes") or {}
-    if args.name not in scenes:
-        raise ConfigError(f"scene {args.name!r} is not in params `scenes` ({sorted(scenes)})")
-    entry = from_dict(SceneEntry, scenes[args.name], where=f"scenes.{args.name}")
+    entry = scene_entry(params, args.name)
     opt = section(OptimizeConfig, "optimize", params)
     metrics = scene_metrics(args.name, args.scene, entry.src, entry.gt, args.surfels_dir, args.mesh_dir,
                             args.train_timing, section(EvaluateConfig, "evaluate", params), opt,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.config import ConfigError, DataConfig, SceneEntry, from_dict, load_params, section
+from pipeline.config import DataConfig, load_params, scene_entry, section
 from pipeline.evaluation.variants import run_variant
 
 
@@ -22,10 +22,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
-    scenes = params.get("scenes") or {}
-    if args.name not in scenes:
-        raise ConfigError(f"scene {args.name!r} is not in params `scenes` ({sorted(scenes)})")
-    entry = from_dict(SceneEntry, scenes[args.name], where=f"scenes.{args.name}")
+    entry = scene_entry(params, args.name)
     m = run_variant(args.name, args.variant, params, args.scene, entry.src, entry.gt,
                     {"mvs": args.init_dir, "sfm": f"{args.baseline_dir}/sfm", "random": f"{args.baseline_dir}/random"}, args.priors_dir, args.out_dir, args.report,
                     section(DataConfig, "data", params).views)
