@@ -37,12 +37,12 @@ def tiny():
     return H, W, K, cams, feats, depth
 
 
-def reference_gcf(depth, K, cams, feats, image_size, valid=None, weight_depth=None):
+def reference_gcf(depth, K, cams, feats, image_size, valid=None, weight_depth=None, max_dissimilarity=None):
     """Loop-based Eq. 4-9 with scipy's bilinear interpolation (independent of torch), over
     the pixels in ``valid`` (default: all) whose reference feature is not zero; a zero
     source feature adds nothing. The view weights w come from ``weight_depth`` (default:
     ``depth``), so that finite differences with it fixed give the gradient of the loss
-    whose weights are constants."""
+    whose weights are constants. Pairs with ``1 - cos >= max_dissimilarity`` add nothing."""
     H, W = depth.shape
     o = [geometry.camera_center(T) for T in cams]
     pts = geometry.backproject_depth(K, cams[0], depth).reshape(-1, 3)
@@ -75,7 +75,9 @@ def reference_gcf(depth, K, cams, feats, image_size, valid=None, weight_depth=No
                 continue
             v_i = (xw - o[i]) / np.linalg.norm(xw - o[i])
             w = max(0.0, v_ref @ v_i)
-            total += w * (1 - fr @ fi / (np.linalg.norm(fr) * np.linalg.norm(fi)))
+            dissimilarity = 1 - fr @ fi / (np.linalg.norm(fr) * np.linalg.norm(fi))
+            if max_dissimilarity is None or dissimilarity < max_dissimilarity:
+                total += w * dissimilarity
     return total / max(use.sum(), 1)
 
 
@@ -112,6 +114,29 @@ def test_gcf_consistent_features_give_zero_and_offsets_do_not():
     l0 = float(gcf_loss(depth, K, cams[0], feats[0], src, valid=everywhere))
     l5 = float(gcf_loss(depth + 5.0, K, cams[0], feats[0], src, valid=everywhere))
     assert l0 < 1e-3 and l5 > 0.1
+
+
+def test_gcf_drops_outlier_pairs(tiny):
+    """With ``max_dissimilarity`` the (point, source) pairs whose features disagree that much
+    add neither loss nor gradient (FatesGS's outlier rule); the rest match the reference."""
+    H, W, K, cams, feats, depth = tiny
+    t = torch.from_numpy
+    src = [(K, cams[i], t(feats[i])) for i in (1, 2)]
+    valid = np.ones((H, W), bool)
+    for cut in (0.5, 1.0, 2.0):
+        got = float(gcf_loss(t(depth), K, cams[0], t(feats[0]), src, valid=valid, max_dissimilarity=cut))
+        np.testing.assert_allclose(got, reference_gcf(depth, K, cams, feats, (H, W), max_dissimilarity=cut), rtol=1e-9)
+    all_pairs = float(gcf_loss(t(depth), K, cams[0], t(feats[0]), src, valid=valid))
+    half = float(gcf_loss(t(depth), K, cams[0], t(feats[0]), src, valid=valid, max_dissimilarity=0.5))
+    assert half < 0.5 * all_pairs  # random features: most pairs are outliers
+    # A point whose every pair is an outlier gets no gradient.
+    d = t(depth).requires_grad_()
+    loss, terms, points = gcf_loss(d, K, cams[0], t(feats[0]), src, valid=valid, max_dissimilarity=0.5,
+                                   return_terms=True)
+    g, = torch.autograd.grad(loss, d)
+    dead = torch.zeros(H * W, dtype=torch.bool)
+    dead[torch.nonzero(points.reshape(-1)).squeeze(1)[terms.detach() == 0]] = True
+    assert dead.any() and torch.count_nonzero(g.reshape(-1)[dead]) == 0
 
 
 def test_gcf_ignores_points_behind_or_outside_sources(tiny):

@@ -51,6 +51,8 @@ def test_section_applies_overrides_before_validation():
         config.section(config.InitConfig, "init", params, {"mvs.windw": 5})
     with pytest.raises(ConfigError, match="data.views must be distinct view ids"):
         config.section(config.DataConfig, "data", params, {"views": [1, 1]})
+    with pytest.raises(ConfigError, match=r"loss.gcf_max_dissimilarity must be in \(0, 2\]"):
+        config.section(config.LossConfig, "loss", params, {"gcf_max_dissimilarity": 0.0})
 
 
 def test_one_list_of_init_backends():

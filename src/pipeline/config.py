@@ -84,6 +84,12 @@ class LossConfig:
     lambda_d: float = 10000.0
     lambda_dn: float = 0.05  # 2DGS depth-normal consistency
     lambda_mask: float = 0.1  # |alpha - mask|, only where masks are used
+    gcf_max_dissimilarity: float = 0.5  # L_gcf pairs with 1 - cos at or above this are outliers (FatesGS); 2: none
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.gcf_max_dissimilarity <= 2.0:
+            raise ConfigError(f"loss.gcf_max_dissimilarity must be in (0, 2] (1 - cos lies in [0, 2]), "
+                              f"got {self.gcf_max_dissimilarity}")
 
 
 @dataclass

@@ -76,6 +76,7 @@ def gcf_loss(
     *,
     valid: torch.Tensor | np.ndarray,
     ref_image_size: tuple[int, int] | None = None,
+    max_dissimilarity: float | None = None,
     return_terms: bool = False,
 ):
     """Geometric-consistent feature loss L_gcf (GCGS Eq. 4-9), differentiable in depth.
@@ -112,6 +113,9 @@ def gcf_loss(
             mask). Pixels with depth 0 are never points; a non-finite depth inside
             ``valid`` raises ``ValueError``.
         ref_image_size: image size ``feats_ref`` refers to, default ``(H, W)``.
+        max_dissimilarity: a (point, source) pair with ``1 - cos`` at or above this is an
+            outlier (occluded in the source, specular, mismatched) and contributes nothing
+            (FatesGS keeps pairs below 0.5); ``None``: keep every pair.
         return_terms: also return the per-point sum over sources ``(N,)`` and the ``(H, W)``
             point mask (``valid & (depth > 0)`` and a non-zero reference feature).
 
@@ -159,8 +163,11 @@ def gcf_loss(
         o_i = -R_i.t() @ t_i
         v_i = F.normalize(x_world - o_i, dim=1)
         w = (v_ref * v_i).sum(1).clamp_min(0.0).detach()
-        term = w * (1.0 - cosine(f_ref, f_i))
-        total = total + torch.where(front & inside & _nonzero(f_i), term, torch.zeros_like(term))
+        dissimilarity = 1.0 - cosine(f_ref, f_i)
+        keep = front & inside & _nonzero(f_i)
+        if max_dissimilarity is not None:
+            keep &= dissimilarity.detach() < max_dissimilarity
+        total = total + torch.where(keep, w * dissimilarity, torch.zeros_like(dissimilarity))
     loss = total.sum() / max(len(idx), 1)
     if return_terms:
         return loss, total, points.view(H, W)

@@ -215,7 +215,8 @@ class Trainer:
                 points[pick] = True
                 points = points.view_as(surface)
             add("gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, valid=points,
-                                ref_image_size=v.feature_image_size), lw.lambda_gcf)
+                                ref_image_size=v.feature_image_size,
+                                max_dissimilarity=lw.gcf_max_dissimilarity), lw.lambda_gcf)
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
             n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
             l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)
