@@ -2,9 +2,9 @@
 # Set up (if needed) and run the pipeline on the bundled data with DVC.
 #   bash scripts/main.sh          the main job: the method on every scene (init -> priors ->
 #                                 optimize -> mesh -> evaluate), the classical baseline and
-#                                 Table I (about 25 min on 2 cores after set-up)
+#                                 Table I (about 22 min of stages on 2 cores after set-up)
 #   bash scripts/main.sh --all    everything in dvc.yaml: also the ablation (Table II), the
-#                                 renders and reports/index.md (about 60 min)
+#                                 renders and reports/index.md (about 50 min of stages)
 #   bash scripts/main.sh STAGE..  those stages (and what they depend on)
 set -euo pipefail
 cd "$(dirname "$0")/.."
