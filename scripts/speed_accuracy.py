@@ -5,7 +5,9 @@ Each cell is ``gcgs variant SCENE CELL`` (one variant trained, meshed and scored
 scene) in its own process; its metrics go to ``reports/speed_accuracy/SCENE/CELL.json``.
 Cells whose report exists are kept (the sweep resumes); ``--force`` reruns them. The
 cells run one after the other so that their times compare; a launcher spreads them out
-(docs/sweeps.md). Usage: ``python scripts/speed_accuracy.py [--only CELL ...] [--force]``.
+(docs/sweeps.md). A run interrupted inside a cell resumes from its checkpoint, and the
+cell's times add those of the earlier runs. Usage: ``python scripts/speed_accuracy.py
+[--only CELL ...] [--scenes SCENE ...] [--force]``.
 """
 from __future__ import annotations
 
@@ -22,12 +24,13 @@ from pipeline.measure import provenance
 
 REPORTS = Path("reports/speed_accuracy")
 # Cells whose settings are a preset of conf/optimize (tests/test_variants.py keeps them equal).
-PRESET_CELLS = {"full": "fast (default)", "sa_it150": "quick", "sa_it1000": "balanced"}
+PRESET_CELLS = {"full": "fast (default)", "sa_it150": "quick", "sa_it1000": "balanced", "sa_paper": "paper"}
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--only", nargs="*", default=None, help="run only these cells")
+    ap.add_argument("--scenes", nargs="*", default=None, help="run cells only on these scenes")
     ap.add_argument("--force", action="store_true", help="rerun cells whose report exists")
     ap.add_argument("--report-only", action="store_true", help="only rebuild the CSV and plot")
     ap.add_argument("--inputs", default="data", help="folder holding scenes/, init/, priors/, baseline/ of each "
@@ -37,7 +40,8 @@ def main() -> int:
     for scene in sweep.scenes:
         for cell in sweep.cells:
             report = REPORTS / scene / f"{cell}.json"
-            if args.report_only or (args.only is not None and cell not in args.only) or (report.is_file() and not args.force):
+            skip = (args.only is not None and cell not in args.only) or (args.scenes is not None and scene not in args.scenes)
+            if args.report_only or skip or (report.is_file() and not args.force):
                 continue
             env = dict(os.environ, OMP_WAIT_POLICY="PASSIVE")
             src = args.inputs

@@ -12,6 +12,7 @@ import torch
 from optimize_scene import tiny_config, tiny_problem
 from pipeline.init.io import PointCloud
 from pipeline.optimize import NonFiniteLossError, SurfelInitError, init_from_cloud, make_views, train
+from pipeline.optimize.run import timing_report
 from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals
 from pipeline.priors.io import write_features, write_normals
 
@@ -59,6 +60,15 @@ def test_resume_is_bitwise_equal(problem, tmp_path):
     assert part.iterations == 6 and ckpt.is_file()
     resumed = _run(scene, cloud, priors, cfg, loss, checkpoint=ckpt)
     assert resumed.resumed_from == 4 and resumed.iterations == 12
+    # The time of the first run (up to its checkpoint) is carried into the resumed run's report.
+    assert straight.spent_before == {"wall_s": 0.0, "cpu_s": 0.0}
+    assert resumed.spent_before["wall_s"] > 0 and resumed.spent_before["cpu_s"] > 0
+    usage = {"wall_s": 1.0, "cpu_s": 2.0, "peak_rss_mb": 3.0}
+    report = timing_report(resumed, usage, "tiny")
+    assert report["wall_s"] == round(1.0 + resumed.spent_before["wall_s"], 2)
+    assert report["cpu_s"] == round(2.0 + resumed.spent_before["cpu_s"], 2)
+    assert (report["wall_s_this_run"], report["iterations_this_run"]) == (1.0, 8)
+    assert report["s_per_iteration"] == round(sum(resumed.seconds.values()) / 12, 4)
     for k, a in straight.params.tensors().items():
         assert torch.equal(a, resumed.params.tensors()[k]), k
     # A checkpoint of another configuration is ignored, not loaded.

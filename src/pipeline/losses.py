@@ -90,7 +90,7 @@ def gcf_loss(
     feature sampling (:func:`sample_features`). A point behind a source camera or
     projecting outside its feature map contributes nothing for that source.
 
-    Two choices the paper leaves open, both so that the loss only moves depth where the
+    Three choices the paper leaves open, all so that the loss only moves depth where the
     features carry information:
 
     * ``w`` is a confidence and is held constant (detached). Its own depth gradient
@@ -100,6 +100,8 @@ def gcf_loss(
       cosine: a reference pixel with one (or outside its feature map: the half-pixel
       border of a 1/2-resolution map) is not a point, a source sample with one
       contributes nothing. Counted as ``1 - 0`` they would add ``w`` and its bias.
+    * A (point, source) pair whose ``1 - cos`` reaches ``max_dissimilarity`` is an outlier
+      (FatesGS's rule) and contributes nothing.
 
     Args:
         depth_ref: ``(H, W)`` camera-frame z in mm, finite where ``valid``.

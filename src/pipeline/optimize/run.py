@@ -64,12 +64,19 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
 
 def timing_report(result: TrainResult, usage: dict, preset: str) -> dict:
     """The run's timings for ``reports/train``: ``usage`` from :func:`pipeline.measure.measure`
-    plus the per-part split of the iterations this process ran."""
+    around this process's run, plus the per-part split of every iteration. A resumed run's
+    ``wall_s`` and ``cpu_s`` add the training time of the earlier runs (up to the checkpoint
+    resumed from), so they are what the whole training cost; ``*_this_run`` are this
+    process's alone."""
     iters_run = result.iterations - (result.resumed_from or 0)
+    before = result.spent_before
     return {
-        **usage, "iterations": result.iterations, "iterations_this_run": iters_run,
-        "resumed_from": result.resumed_from,
-        "s_per_iteration": round(sum(result.seconds.values()) / max(iters_run, 1), 4),
+        **usage, "wall_s": round(usage["wall_s"] + before["wall_s"], 2),
+        "cpu_s": round(usage["cpu_s"] + before["cpu_s"], 2),
+        "wall_s_this_run": usage["wall_s"], "cpu_s_this_run": usage["cpu_s"],
+        "iterations": result.iterations, "iterations_this_run": iters_run, "resumed_from": result.resumed_from,
+        # the split is restored from the checkpoint, so it covers every iteration
+        "s_per_iteration": round(sum(result.seconds.values()) / max(result.iterations, 1), 4),
         "split_s": {k: round(v, 3) for k, v in result.seconds.items()},
         "surfels_final": result.params.num, "backend": result.backend, "preset": preset,
     }

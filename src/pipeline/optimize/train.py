@@ -67,6 +67,10 @@ class TrainResult:
     removed_degenerate: int = 0
     resumed_from: int | None = None
     final_terms: dict = field(default_factory=dict)
+    # Wall and CPU seconds of the training loop in earlier runs of this training (those up
+    # to the checkpoint resumed from; zero for a fresh run), so a resumed run reports what
+    # the whole training cost.
+    spent_before: dict = field(default_factory=lambda: {"wall_s": 0.0, "cpu_s": 0.0})
 
 
 def _fingerprint(cfg: OptimizeConfig, loss: LossConfig, params0: SurfelParams, views: TrainViews) -> str:
@@ -113,6 +117,7 @@ class Trainer:
         self.it = 0
         self.removed_degenerate = 0
         self.seconds: dict[str, float] = defaultdict(float)
+        self.spent = {"wall_s": 0.0, "cpu_s": 0.0}  # the training loop's time, over every run
 
     # -- checkpoints -------------------------------------------------------------
     def state_dict(self) -> dict:
@@ -122,7 +127,7 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state.state_dict(),
             "generator": self.generator.get_state(), "rng": self.rng.bit_generator.state,
             "queue": list(self.queue), "removed_degenerate": self.removed_degenerate,
-            "seconds": dict(self.seconds),
+            "seconds": dict(self.seconds), "spent": dict(self.spent),
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -139,6 +144,7 @@ class Trainer:
         self.num_init = int(state["num_init"])
         self.removed_degenerate = int(state["removed_degenerate"])
         self.seconds = defaultdict(float, state["seconds"])
+        self.spent = dict(state["spent"])
 
     def save_checkpoint(self, path: Path) -> None:
         with atomic.atomic_file(path) as tmp:
@@ -289,6 +295,7 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
     trainer = Trainer(params, views, cfg, loss, backend)
     ckpt = Path(checkpoint) if checkpoint else None
     resumed = trainer.it if (ckpt is not None and trainer.try_resume(ckpt, log)) else None
+    spent_before = dict(trainer.spent)
     history: list[dict] = []
     bar = None
     if progress:
@@ -298,7 +305,7 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
     last: dict = {}
     done = 0
     while trainer.it < cfg.iterations and (stop_after is None or done < stop_after):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         row = trainer.step()
         row["seconds"] = time.perf_counter() - t0
         last = row
@@ -312,11 +319,13 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
             if row["iteration"] % log_every == 0:
                 bar.set_postfix({k: f"{row[k]:.4g}" for k in ("total", "l1", "gcf", "nor", "dist") if k in row}
                                 | {"N": row["surfels"]})
+        trainer.spent["wall_s"] += time.perf_counter() - t0
+        trainer.spent["cpu_s"] += time.process_time() - c0
         if ckpt is not None and cfg.checkpoint_every and trainer.it % cfg.checkpoint_every == 0:
             trainer.save_checkpoint(ckpt)
     if bar is not None:
         bar.close()
     return TrainResult(params=trainer.params, iterations=trainer.it, backend=backend, num_init=trainer.num_init,
                        history=history, seconds={k: trainer.seconds.get(k, 0.0) for k in TIMED},
-                       removed_degenerate=trainer.removed_degenerate, resumed_from=resumed,
+                       removed_degenerate=trainer.removed_degenerate, resumed_from=resumed, spent_before=spent_before,
                        final_terms={k: v for k, v in last.items() if k not in ("iteration", "view", "seconds")})
