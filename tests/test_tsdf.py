@@ -44,6 +44,31 @@ def test_mesh_covers_what_the_cameras_see(fused):
     assert np.percentile(dist, 95) < 1.5 * voxel
 
 
+def test_canonical_order_writes_one_mesh_one_way(fused):
+    """Any vertex order, triangle order and rotation of a triangle's indices give the same
+    arrays; the triangles (as corner coordinates, winding included) stay the same."""
+    _, _, mesh, _ = fused
+    assert np.array_equal(tsdf.canonical_order(mesh).vertices_mm, mesh.vertices_mm)  # fusion's output is canonical
+    rng = np.random.default_rng(0)
+    perm = rng.permutation(len(mesh.vertices_mm))
+    inv = np.empty_like(perm)
+    inv[perm] = np.arange(len(perm))
+    tris = inv[mesh.triangles][rng.permutation(len(mesh.triangles))]
+    roll = rng.integers(0, 3, len(tris))
+    tris = tris[np.arange(len(tris))[:, None], (roll[:, None] + np.arange(3)) % 3]
+    shuffled = tsdf.Mesh(mesh.vertices_mm[perm], tris, mesh.colors[perm])
+    a, b = tsdf.canonical_order(shuffled), tsdf.canonical_order(mesh)
+    for x, y in ((a.vertices_mm, b.vertices_mm), (a.triangles, b.triangles), (a.colors, b.colors)):
+        assert np.array_equal(x, y)
+
+    def corners(m):  # each triangle as its corner coordinates, rotated to start at the least
+        return sorted(min(tuple(map(tuple, np.roll(t, -k, axis=0))) for k in range(3))
+                      for t in m.vertices_mm[m.triangles])
+
+    part = tsdf.Mesh(shuffled.vertices_mm, shuffled.triangles[:500], shuffled.colors)
+    assert corners(tsdf.canonical_order(part)) == corners(part)
+
+
 def test_cleaning_keeps_components_relative_to_the_largest(fused):
     scene, _, mesh, _ = fused
     big, small = spheres_world(scene)

@@ -102,7 +102,25 @@ def fuse_depth_maps(
     verts = np.asarray(mesh.vertices, dtype=np.float64)
     tris = np.asarray(mesh.triangles, dtype=np.int64)
     cols = np.asarray(mesh.vertex_colors, dtype=np.float64) if with_color and mesh.has_vertex_colors() else None
-    return Mesh(verts, tris, cols)
+    return canonical_order(Mesh(verts, tris, cols))
+
+
+def canonical_order(mesh: Mesh) -> Mesh:
+    """The same mesh with its vertices sorted by (x, y, z), each triangle's indices rotated
+    to start at its smallest (the winding, hence the normal, is kept) and the triangles
+    sorted. Open3D's block hash map extracts vertices in an order that varies from run to
+    run; in this order the same surface is written with the same bytes."""
+    v = mesh.vertices_mm
+    order = np.lexsort((v[:, 2], v[:, 1], v[:, 0]))
+    rank = np.empty(len(order), np.int64)
+    rank[order] = np.arange(len(order))
+    tris = rank[mesh.triangles]
+    if len(tris):
+        shift = np.argmin(tris, axis=1)
+        tris = tris[np.arange(len(tris))[:, None], (shift[:, None] + np.arange(3)) % 3]
+        tris = tris[np.lexsort((tris[:, 2], tris[:, 1], tris[:, 0]))]
+    cols = mesh.colors[order] if mesh.colors is not None else None
+    return Mesh(v[order], tris, cols)
 
 
 def keep_components(mesh: Mesh, min_fraction: float) -> tuple[Mesh, dict]:
