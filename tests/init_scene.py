@@ -58,13 +58,21 @@ def texture(world: np.ndarray, wavelength_mm: float, seed: int = 0) -> np.ndarra
 
 
 def make_scene(width: int = 200, height: int = 150, seed: int = 0,
-               spheres: list[tuple[np.ndarray, float]] | None = None) -> tuple[Scene, np.ndarray]:
+               spheres: list[tuple[np.ndarray, float]] | None = None,
+               plain: bool = False) -> tuple[Scene, np.ndarray]:
     """The test scene at ``width x height`` and its GT depth maps ``(N, H, W)`` (0 = miss).
-    ``spheres``: (centre mm, radius mm) of each part (default :func:`spheres_world`)."""
+    ``spheres``: (centre mm, radius mm) of each part (default :func:`spheres_world`).
+    ``plain``: one albedo everywhere and a light from beside the cameras, so the only
+    pattern is the shading, and it covers what the cameras see."""
     base = load_scene(SCAN, resolution=(width, height))
     spheres = spheres_world(base) if spheres is None else spheres
     px_mm = 680.0 / base.K[0, 0, 0]  # pixel footprint at the object distance
     light = np.array([0.3, -0.5, -0.8])
+    if plain:  # from the cameras' side and off their axis: shading over the whole visible part
+        to_cams = np.mean([geometry.camera_center(T) for T in base.world_to_cam], 0) - base.norm_to_world[:3, 3]
+        to_cams /= np.linalg.norm(to_cams)
+        side = np.cross(to_cams, [0.0, 0.0, 1.0])
+        light = -(to_cams + 0.7 * side / np.linalg.norm(side))
     light /= np.linalg.norm(light)
     images, masks, depths = [], [], []
     for K, w2c in zip(base.K, base.world_to_cam):
@@ -76,7 +84,7 @@ def make_scene(width: int = 200, height: int = 150, seed: int = 0,
             on = hit & (np.abs(np.linalg.norm(world - centre, axis=-1) - radius) < 1e-6 * radius + 1e-6)
             normal[on] = (world[on] - centre) / radius
         shade = 0.35 + 0.65 * np.clip(-(normal @ light), 0.0, 1.0)
-        albedo = texture(world, wavelength_mm=4.0 * px_mm, seed=seed)
+        albedo = 0.6 if plain else texture(world, wavelength_mm=4.0 * px_mm, seed=seed)
         grey = np.where(hit, 0.15 + 0.8 * albedo * shade, 0.05)
         rgb = np.stack([grey, 0.9 * grey + 0.05, 0.8 * grey + 0.1], -1)
         images.append(np.clip(rgb, 0, 1).astype(np.float32))

@@ -162,6 +162,64 @@ def test_mvs_rejects_textureless_views(spheres):
     assert res.valid.sum() == 0
 
 
+@pytest.fixture(scope="module")
+def plain_spheres():
+    return make_scene(200, 150, plain=True)
+
+
+def _fill(scene: type, width: int = 100):
+    params = InitConfig().mvs
+    params = type(params)(**{**params.__dict__, "fill_width": width})
+    grey = mvs.common_grey(scene.images, scene.masks)
+    return params, [mvs.sweep_plain(scene, r, params, grey, scene.masks[r]) for r in range(scene.num_views)]
+
+
+def test_plain_shaded_surface_is_found_by_the_fill(plain_spheres):
+    """One albedo, Lambertian shading only: NCC matches a part (a shading ramp matches its
+    own shifted copy), the absolute-difference fill most of it, at the right depth."""
+    scene, gt = plain_spheres
+    ncc = mvs.sweep_view(scene, 0, InitConfig().mvs).valid
+    assert ncc.sum() < 0.5 * scene.masks[0].sum(), ncc.sum() / scene.masks[0].sum()
+    _, fills = _fill(scene)
+    for r, res in enumerate(fills):
+        assert not (res.valid & ~scene.masks[r]).any()
+        assert res.valid.sum() > 0.75 * scene.masks[r].sum(), (r, res.valid.sum(), scene.masks[r].sum())
+        rel = np.abs(res.depth_mm[res.valid] - gt[r][res.valid]) / gt[r][res.valid]
+        # Swept at 100 px wide, where one plane (a coarse pixel of disparity) is ~1.5% of the depth.
+        assert np.median(rel) < 6e-3 and np.percentile(rel, 90) < 3e-2, (np.median(rel), np.percentile(rel, 90))
+        assert np.all((res.score[res.valid] >= 0) & (res.score[res.valid] <= 1))
+
+
+def test_fill_ignores_exposure_and_needs_shading(plain_spheres):
+    scene, _ = plain_spheres
+    _, fills = _fill(scene)
+    darker = type(scene)(**{**scene.__dict__, "images": scene.images * 0.3})
+    _, fills_dark = _fill(darker)
+    for a, b in zip(fills, fills_dark):
+        assert np.array_equal(a.valid, b.valid)
+        np.testing.assert_allclose(a.depth_mm, b.depth_mm, rtol=1e-4)
+    # One grey everywhere: every depth fits equally, so nothing is filled.
+    one_grey = np.where(scene.masks[..., None], 0.5, 0.05) * np.ones(3)
+    flat = type(scene)(**{**scene.__dict__, "images": one_grey.astype(np.float32)})
+    assert sum(r.valid.sum() for r in _fill(flat)[1]) == 0
+
+
+def test_mvs_fills_plain_regions_only_where_ncc_fails(spheres, plain_spheres, mvs_result):
+    scene, _ = plain_spheres
+    cfg = InitConfig()
+    with_fill = mvs.run(scene, type(cfg)(**{**cfg.__dict__, "mvs": _fill(scene)[0]}))
+    without = mvs.run(scene, type(cfg)(**{**cfg.__dict__, "mvs": type(cfg.mvs)(**{**cfg.mvs.__dict__, "fill_width": 0})}))
+    assert len(without.cloud) < 0.5 * len(with_fill.cloud), (len(without.cloud), len(with_fill.cloud))
+    d = distance_to_spheres(with_fill.cloud.points_mm, scene)
+    coarse_px_mm = 680.0 / scene.K[0, 0, 0] * scene.width / 100  # a fill pixel at the object (~680 mm)
+    assert np.median(d) < 0.5 * coarse_px_mm and np.percentile(d, 90) < 1.5 * coarse_px_mm, (
+        np.median(d), np.percentile(d, 90), coarse_px_mm)
+    # On a textured scene NCC matches nearly every pixel and the fill adds only what stays consistent.
+    textured = mvs.run(spheres[0], type(cfg)(**{**cfg.__dict__, "mvs": _fill(spheres[0])[0]}))
+    assert len(textured.cloud) >= len(mvs_result.cloud)
+    assert np.median(distance_to_spheres(textured.cloud.points_mm, spheres[0])) < 0.8
+
+
 def test_sfm_points_are_on_the_surface(spheres):
     scene, _ = spheres
     res = sfm.run(scene, InitConfig())

@@ -58,6 +58,33 @@ def test_flat_regions_and_bad_images():
         default_features(np.zeros((40, 60), np.float32))
 
 
+def test_detrend_drops_ramps_and_keeps_texture():
+    """A linear ramp of grey (shading on a plain surface) matches its own shifted copy under
+    NCC: with ``detrend`` its patches are no information; texture keeps its features, and
+    each kept feature is orthogonal to the patch's x and y ramps."""
+    ys, xs = np.mgrid[0:40, 0:60].astype(np.float32)
+    ramp = 0.2 + 0.01 * xs + 0.004 * ys
+    ramp_img = np.repeat(ramp[..., None], 3, axis=2)
+    plain = default_features(ramp_img, min_contrast=0.002)
+    detrended = default_features(ramp_img, min_contrast=0.002, detrend=True)
+    # Away from the borders (reflection bends the ramp there): the patch reach, plus the blur at scale 2.
+    assert np.all(np.linalg.norm(plain[:, 4:-4, 4:-4], axis=0) > 0.99)
+    assert not np.any(detrended[:25, 2:-2, 2:-2]) and not np.any(detrended[25:, 8:-8, 8:-8])
+    img = textured()
+    f = default_features(img, scales=(1,), detrend=True)
+    kept = np.linalg.norm(f, axis=0) > 0
+    assert kept.mean() > 0.95
+    r = np.arange(-2, 3, dtype=np.float32)
+    x_ramp, y_ramp = np.tile(r, 5), np.repeat(r, 5)  # channel c = (dy, dx) in row-major order
+    np.testing.assert_allclose(np.einsum("chw,c->hw", f, x_ramp), 0.0, atol=1e-5)
+    np.testing.assert_allclose(np.einsum("chw,c->hw", f, y_ramp), 0.0, atol=1e-5)
+    # Texture on top of a ramp: the same features as the texture alone (the ramp is removed).
+    g = default_features(img + 0.3 * ramp_img / ramp_img.max(), scales=(1,), detrend=True)
+    both = kept & (np.linalg.norm(g, axis=0) > 0)
+    cos = np.einsum("chw,chw->hw", f, g)[both]
+    assert np.median(cos) > 0.99, np.median(cos)
+
+
 def test_vismvsnet_preprocessing_is_bgr_imagenet():
     img = np.zeros((5, 7, 3), np.float32)
     img[..., 0] = 1.0  # pure red

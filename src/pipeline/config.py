@@ -107,6 +107,10 @@ class MVSConfig:
     refine_step: float = 0.25  # ... in steps of this fraction of a plane step
     warn_below_matched: float = 0.15  # warn when a view's matched fraction of mask pixels is below this
     warn_below_consistent: float = 0.10  # ... or its geometrically consistent fraction
+    fill_width: int = 200  # width (px) of the absolute-difference sweep where NCC has no match (0: off)
+    fill_window: int = 7  # its window side, coarse pixels (odd)
+    fill_max_rms: float = 0.05  # its winner's RMS grey difference (object-mean units) above this -> invalid
+    fill_min_std: float = 0.002  # its window's grey std (object-mean units) below this -> one grey, invalid
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -115,6 +119,9 @@ class MVSConfig:
             raise ConfigError("init.mvs: depth_step_px must be > 0 and max_depths >= 3")
         if self.refine_iters < 0 or not 0 < self.refine_step <= self.refine_range:
             raise ConfigError("init.mvs: refine_iters must be >= 0 and 0 < refine_step <= refine_range")
+        if self.fill_width < 0 or self.fill_window < 3 or self.fill_window % 2 == 0 or self.fill_max_rms <= 0 \
+                or self.fill_min_std < 0:
+            raise ConfigError("init.mvs: fill_width must be >= 0, fill_window odd and >= 3, fill_max_rms > 0, fill_min_std >= 0")
         if self.min_rel_std < 0:
             raise ConfigError(f"init.mvs.min_rel_std must be >= 0, got {self.min_rel_std}")
 
@@ -194,7 +201,8 @@ class PriorsConfig:
     normal_max_slant_deg: float = 80.0  # steeper depth steps are discontinuities
     feature_patch: int = 5  # odd patch side, 1/2-resolution pixels
     feature_scales: list[int] = field(default_factory=lambda: [1, 2])  # patch dilations
-    feature_min_contrast: float = 0.002  # patch grey std (in [0, 1]) below this -> zero feature
+    feature_min_rel_contrast: float = 0.025  # patch grey std / the view's mean grey in its mask below this -> zero feature
+    feature_detrend: bool = True  # remove each patch's linear ramp before that test (shading carries no NCC match)
     feature_dtype: str = "float16"  # storage dtype of the feature maps
 
     NORMALS = ("default", "dsine", "none")

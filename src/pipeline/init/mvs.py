@@ -160,6 +160,20 @@ def _relative_warp(K_r, T_r, K_s, T_s):
     return A, b
 
 
+def _plane_count(warps, pix: np.ndarray, z_near: float, z_far: float, step_px: float, max_depths: int) -> int:
+    """Planes ``step_px`` pixels of disparity apart between ``z_near`` and ``z_far`` in the
+    widest-baseline source (95th percentile over a sample of the ``(M, 2)`` pixels)."""
+    sel = pix[:: max(1, len(pix) // 2000)]
+    ph = np.c_[sel, np.ones(len(sel))]
+    span = 0.0
+    for A, b in warps:
+        q_near = (ph @ A.T) * z_near + b
+        q_far = (ph @ A.T) * z_far + b
+        d = np.linalg.norm(q_near[:, :2] / q_near[:, 2:] - q_far[:, :2] / q_far[:, 2:], axis=1)
+        span = max(span, float(np.percentile(d, 95)))
+    return int(min(max_depths, max(3, math.ceil(span / step_px) + 1)))
+
+
 def _peak(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Winner-take-all over axis 0 and the vertex of the parabola through the winner's
     and its neighbours' scores. Returns ``(index, score, offset in steps, interior)``;
@@ -214,15 +228,7 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
 
     # Plane count: disparity span between z_near and z_far in the widest-baseline source.
     warps = [_relative_warp(scene.K[ref], scene.world_to_cam[ref], scene.K[s], scene.world_to_cam[s]) for s in srcs]
-    sel = pix[in_box_mask][:: max(1, in_box_mask.sum() // 2000)]
-    ph = np.c_[sel, np.ones(len(sel))]
-    span = 0.0
-    for A, b in warps:
-        q_near = (ph @ A.T) * z_near + b
-        q_far = (ph @ A.T) * z_far + b
-        d = np.linalg.norm(q_near[:, :2] / q_near[:, 2:] - q_far[:, :2] / q_far[:, 2:], axis=1)
-        span = max(span, float(np.percentile(d, 95)))
-    D = int(min(params.max_depths, max(3, math.ceil(span / params.depth_step_px) + 1)))
+    D = _plane_count(warps, pix[in_box_mask], z_near, z_far, params.depth_step_px, params.max_depths)
     inv_planes = np.linspace(1.0 / z_far, 1.0 / z_near, D)  # index 0 = far
 
     ref_img = np.ascontiguousarray(grey[ref, y0:y1, x0:x1], dtype=np.float32)
@@ -289,6 +295,113 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
     return out
 
 
+def common_grey(images: np.ndarray, masks: np.ndarray | None) -> np.ndarray:
+    """``(N, H, W, 3)`` RGB -> ``(N, H, W)`` float32 luminance divided by one mean over every
+    view's object mask: free of the capture's exposure, while the views keep their relative
+    brightness (:func:`normalised_grey` divides each view by its own mean, which differs
+    with the part of the object it sees and would bias absolute differences)."""
+    grey = to_grey(np.asarray(images, np.float32))
+    inside = grey[masks] if masks is not None and masks.any() else grey
+    mean = float(inside.mean())
+    return grey / mean if mean > 0 else grey
+
+
+def sweep_plain(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray, todo: np.ndarray) -> SweepResult:
+    """Depth of view ``ref`` where NCC cannot match (``todo``, ``(H, W)`` bool), by a coarse
+    plane sweep on absolute grey differences.
+
+    NCC ignores gain and offset, so a window of smooth shading (a plain Lambertian surface
+    lit from one side: a ramp of grey) matches a shifted copy of itself as well as the true
+    one; the squared difference of the views' grey (``grey``: :func:`common_grey`) does not.
+    The sweep runs at ``params.fill_width`` pixels wide, where a window spans enough of the
+    shading gradient, with fronto-parallel planes one coarse pixel of disparity apart and a
+    parabola through the winner; the winner's RMS difference must be at most
+    ``params.fill_max_rms`` and the reference window's grey std at least
+    ``params.fill_min_std``. Its inverse depth is resized back and kept on ``todo`` pixels
+    whose whole neighbourhood was valid. ``score`` is ``1 - rms / fill_max_rms`` (1: exact
+    match).
+    """
+    H, W = scene.height, scene.width
+    out = SweepResult(np.zeros((H, W), np.float32), np.full((H, W), -1.0, np.float32), np.zeros((H, W), bool), 0)
+    mask = scene.masks[ref] if scene.masks is not None else np.ones((H, W), bool)
+    srcs = [i for i in range(scene.num_views) if i != ref]
+    if not srcs or not todo.any():
+        return out
+    w = min(params.fill_width, W)
+    h = max(int(round(H * w / W)), 2)
+    sx, sy = w / W, h / H
+
+    def down(img: np.ndarray) -> np.ndarray:
+        return cv2.resize(np.asarray(img, np.float32), (w, h), interpolation=cv2.INTER_AREA)
+
+    def down_object(view: int) -> tuple[np.ndarray, np.ndarray]:
+        """Coarse grey averaged over object pixels only (a silhouette blended with the
+        background would be matched as texture), and the coarse mask."""
+        m = scene.masks[view] if scene.masks is not None else np.ones((H, W), bool)
+        cover = down(m)
+        return down(grey[view] * m) / np.maximum(cover, 1e-6), cover
+
+    K = [geometry.scale_intrinsics(k, sx, sy) for k in scene.K]
+    ref_img, ref_cover = down_object(ref)
+    ref_mask = ref_cover > 0.5
+    if not ref_mask.any():
+        return out
+    gy, gx = np.nonzero(ref_mask)
+    pix = np.stack([gx, gy], 1).astype(np.float64)
+    near, far = sphere_depth_range(K[ref], scene.world_to_cam[ref], scene.norm_to_world, pix, params.sphere_margin)
+    hit = np.isfinite(near)
+    if not hit.any():
+        return out
+    z_near, z_far = float(near[hit].min()), float(far[hit].max())
+    warps = [_relative_warp(K[ref], scene.world_to_cam[ref], K[s], scene.world_to_cam[s]) for s in srcs]
+    D = _plane_count(warps, pix[hit], z_near, z_far, 1.0, params.max_depths)
+    inv_planes = np.linspace(1.0 / z_far, 1.0 / z_near, D)
+
+    k = params.fill_window
+    src_data = [down_object(s) for s in srcs]
+    M = ref_mask.astype(np.float32)
+    neg_cost = np.empty((D, h, w), np.float32)
+    e3 = np.array([0.0, 0.0, 1.0])
+    for d, inv_z in enumerate(inv_planes):
+        err = np.zeros((h, w), np.float32)
+        n_src = np.zeros((h, w), np.float32)
+        for (A, b), (img, smask) in zip(warps, src_data):
+            Hm = A + np.outer(b, e3) * inv_z  # reference pixel -> source pixel on this plane
+            flags = cv2.WARP_INVERSE_MAP
+            warped = cv2.warpPerspective(img, Hm, (w, h), flags=cv2.INTER_LINEAR | flags)
+            seen = cv2.warpPerspective(smask, Hm, (w, h), flags=cv2.INTER_LINEAR | flags, borderValue=0.0) > 0.99
+            both = M * seen
+            cover = box_mean(both, k)
+            diff = box_mean(both * (warped - ref_img) ** 2, k)
+            ok = cover > 0.5  # the source sees most of the window on its object
+            err += np.where(ok, diff / np.maximum(cover, 1e-6), 0.0)
+            n_src += ok
+        neg_cost[d] = np.where(n_src == len(srcs), -err / len(srcs), -np.inf)
+    neg_cost = np.maximum(neg_cost, -1e6)  # finite for the parabola; such winners fail the rms test
+    best, best_neg, offset, interior = _peak(neg_cost)
+    rms = np.sqrt(np.maximum(-best_neg, 0.0))
+    # A window of one grey (no shading either) fits every depth; its winner is noise.
+    frac = box_mean(M, k)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mu = box_mean(M * ref_img, k) / frac
+        std = np.sqrt(np.maximum(box_mean(M * ref_img * ref_img, k) / frac - mu * mu, 0.0))
+    ok = ref_mask & interior & (rms <= params.fill_max_rms) & (std >= params.fill_min_std)
+    step = (inv_planes[-1] - inv_planes[0]) / (D - 1)
+    inv_depth = np.where(ok, inv_planes[best] + offset * step, 0.0).astype(np.float32)
+    score = np.where(ok, 1.0 - rms / params.fill_max_rms, 0.0).astype(np.float32)
+
+    # Back to full size: keep a pixel only where every coarse sample under it was valid.
+    full = (W, H)
+    support = cv2.resize(ok.astype(np.float32), full, interpolation=cv2.INTER_LINEAR)
+    inv_full = cv2.resize(inv_depth, full, interpolation=cv2.INTER_LINEAR)
+    keep = todo & mask & (support > 0.999) & (inv_full > 0)
+    out.depth_mm[keep] = 1.0 / inv_full[keep]
+    out.score[keep] = cv2.resize(score, full, interpolation=cv2.INTER_LINEAR)[keep]
+    out.valid[:] = keep
+    out.num_depths = D
+    return out
+
+
 def run(scene: Scene, cfg: InitConfig) -> InitResult:
     """The ``mvs`` backend: sweep every view, check consistency, fuse.
 
@@ -296,6 +409,10 @@ def run(scene: Scene, cfg: InitConfig) -> InitResult:
     """
     grey = normalised_grey(scene.images, scene.masks)
     sweeps = [sweep_view(scene, r, cfg.mvs, grey) for r in range(scene.num_views)]
+    if cfg.mvs.fill_width > 0:
+        grey_abs = common_grey(scene.images, scene.masks)
+        sweeps = [_merge(sw, sweep_plain(scene, r, cfg.mvs, grey_abs, _masks(scene)[r] & ~sw.valid))
+                  for r, sw in enumerate(sweeps)]
     depths = np.stack([s.depth_mm for s in sweeps])
     valid = np.stack([s.valid for s in sweeps])
     views = check_consistency(depths, valid, scene.K, scene.world_to_cam, scene.images, cfg.consistency)
@@ -336,6 +453,13 @@ def match_warnings(view_ids: list[int], matched: list[float], consistent: list[f
             out.append(f"view {v}: only {' and '.join(low)} of its mask pixels: the cloud misses much of the "
                        "object there; check the mask, the exposure and the baseline to the other views")
     return out
+
+
+def _merge(ncc: SweepResult, fill: SweepResult) -> SweepResult:
+    """NCC depths where they are valid, the plain-region fill elsewhere."""
+    use = fill.valid & ~ncc.valid
+    return SweepResult(np.where(use, fill.depth_mm, ncc.depth_mm), np.where(use, fill.score, ncc.score),
+                       ncc.valid | use, ncc.num_depths)
 
 
 def _masks(scene: Scene) -> np.ndarray:

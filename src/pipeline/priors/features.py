@@ -11,8 +11,9 @@ Both backends give ``(C, h, w)`` float32 maps at 1/2 resolution (``h = H // 2``,
   invariant to gain and offset changes of the lighting. Scales are concatenated with
   weight ``1/sqrt(S)`` each, so the cosine of two full vectors is the mean NCC over
   scales (the coarse scale widens the loss's basin, the fine one sharpens its minimum).
-  Patches whose grey-level standard deviation is below ``min_contrast`` are set to 0
-  (textureless: no information); ``pipeline.losses.cosine`` defines their cosine as 0.
+  Patches whose grey-level standard deviation (after removing their linear ramp, with
+  ``detrend``) is below ``min_contrast`` are set to 0 (textureless: no information);
+  ``pipeline.losses.gcf_loss`` leaves them out.
 * ``vismvsnet``: a user-supplied ONNX export of Vis-MVSNet's feature extractor (the
   32-channel 1/2-resolution level), with Vis-MVSNet's own preprocessing
   (:func:`vismvsnet_input`).
@@ -61,11 +62,14 @@ def half_size(height: int, width: int) -> tuple[int, int]:
     return height // 2, width // 2
 
 
-def normalised_patches(grey: np.ndarray, patch: int, dilation: int, min_contrast: float) -> np.ndarray:
+def normalised_patches(grey: np.ndarray, patch: int, dilation: int, min_contrast: float,
+                       detrend: bool = False) -> np.ndarray:
     """``(patch^2, h, w)`` mean-subtracted, unit-norm patches of a 2-D image (0 where flat).
 
     The patch samples ``grey`` at offsets ``dilation * (-r..r)`` (``r = patch // 2``),
-    reflecting at the borders.
+    reflecting at the borders. ``detrend``: also remove the patch's least-squares linear
+    ramp before the contrast test. NCC cannot place a ramp (smooth shading on a plain
+    surface matches its own shifted copy), so a patch that is one carries no information.
     """
     r = patch // 2
     pad = r * dilation
@@ -77,6 +81,9 @@ def normalised_patches(grey: np.ndarray, patch: int, dilation: int, min_contrast
         y0, x0 = pad + dy * dilation, pad + dx * dilation
         out[c] = g[y0:y0 + h, x0:x0 + w]
     out -= out.mean(0, keepdims=True)
+    if detrend:  # the x and y ramps over the patch are zero-mean and orthogonal
+        for ramp in (np.array([dx for _, dx in offs], np.float32), np.array([dy for dy, _ in offs], np.float32)):
+            out -= (np.einsum("chw,c->hw", out, ramp) / (ramp @ ramp))[None] * ramp[:, None, None]
     norm = np.sqrt(np.einsum("chw,chw->hw", out, out))
     # std over the patch = norm / sqrt(n); flat patches carry no information -> 0.
     ok = norm > min_contrast * np.sqrt(len(offs))
@@ -84,8 +91,18 @@ def normalised_patches(grey: np.ndarray, patch: int, dilation: int, min_contrast
     return out
 
 
+def contrast_floor(image: np.ndarray, mask: np.ndarray | None, min_rel_contrast: float) -> float:
+    """``min_contrast`` for :func:`default_features` relative to the exposure:
+    ``min_rel_contrast`` times the image's mean grey inside ``mask`` (all pixels without
+    one), so that a dark capture keeps the features a bright one has (as the MVS's
+    ``min_rel_std``)."""
+    grey = cv2.cvtColor(np.asarray(image, np.float32), cv2.COLOR_RGB2GRAY)
+    inside = grey[mask] if mask is not None and mask.any() else grey
+    return float(min_rel_contrast * inside.mean())
+
+
 def default_features(image: np.ndarray, patch: int = 5, scales: tuple[int, ...] = (1, 2),
-                     min_contrast: float = 0.002, where: str = "image") -> np.ndarray:
+                     min_contrast: float = 0.002, detrend: bool = False, where: str = "image") -> np.ndarray:
     """Multi-scale normalised-patch features ``(patch^2 * len(scales), H//2, W//2)``.
 
     ``image``: ``(H, W, 3)`` RGB in [0, 1]. Scale ``s`` takes patches with dilation ``s``
@@ -103,7 +120,7 @@ def default_features(image: np.ndarray, patch: int = 5, scales: tuple[int, ...] 
     parts = []
     for s in scales:
         src = half if s == 1 else cv2.GaussianBlur(half, (0, 0), 0.5 * s, borderType=cv2.BORDER_REFLECT_101)
-        parts.append(normalised_patches(src, patch, int(s), min_contrast))
+        parts.append(normalised_patches(src, patch, int(s), min_contrast, detrend))
     feats = np.concatenate(parts) / np.float32(np.sqrt(len(parts)))
     if not np.any(feats):
         raise FeatureError(f"{where}: no textured pixel (every patch has contrast below {min_contrast})")

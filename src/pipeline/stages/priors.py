@@ -73,7 +73,10 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
                 if features_backend == "default":
                     f = feat.default_features(scene.images[i], patch=cfg.feature_patch,
                                               scales=tuple(cfg.feature_scales),
-                                              min_contrast=cfg.feature_min_contrast, where=where)
+                                              min_contrast=feat.contrast_floor(
+                                                  scene.images[i], None if scene.masks is None else scene.masks[i],
+                                                  cfg.feature_min_rel_contrast),
+                                              detrend=cfg.feature_detrend, where=where)
                 else:
                     f = feat.vismvsnet_features(vis, scene.images[i], where=where)
                 size = feat.feature_image_size(scene.height, scene.width)
