@@ -11,7 +11,8 @@ import torch
 
 from optimize_scene import tiny_config, tiny_problem
 from pipeline.init.io import PointCloud
-from pipeline.optimize import NonFiniteLossError, SurfelInitError, init_from_cloud, make_views, train
+from pipeline.config import ConfigError
+from pipeline.optimize import NonFiniteLossError, SurfelInitError, budget_downsample, init_from_cloud, make_views, train
 from pipeline.optimize.run import timing_report
 from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals
 from pipeline.priors.io import write_features, write_normals
@@ -94,6 +95,35 @@ def test_init_cloud_of_zero_and_one_point(problem):
         init_from_cloud(empty, scene, cfg)
     one = PointCloud(cloud.points_mm[:1], cloud.colors[:1], cloud.normals[:1], cloud.confidence[:1])
     _finite(_run(scene, one, priors, cfg, loss))
+
+
+def test_budget_caps_the_init_cloud_and_keeps_its_extent():
+    """A budget below the init cloud's size thins the cloud (not only densification), spread
+    over the whole surface: a 200x200 grid on a 1x1 square kept within 1000 points."""
+    g = np.linspace(0.0, 1.0, 200)
+    x, y = np.meshgrid(g, g)
+    pts = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    normals = np.tile([0.0, 0.0, 2.0], (len(pts), 1))  # not unit: averaged ones are renormalised
+    colors = np.c_[x.ravel(), y.ravel(), np.zeros(x.size)]
+    p, n, c = budget_downsample(pts, normals, colors, 0.0, 1000)
+    assert 500 <= len(p) <= 1000
+    assert np.ptp(p[:, 0]) > 0.9 and np.ptp(p[:, 1]) > 0.9  # still covers the square
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0)
+    # Each kept point is the mean of its voxel: its colour equals its position.
+    np.testing.assert_allclose(c[:, :2], p[:, :2], atol=1e-12)
+    same = budget_downsample(pts, normals, colors, 0.0, len(pts))  # at the budget: untouched
+    assert same[0] is pts and same[1] is normals
+    with pytest.raises(ConfigError, match="max_surfels"):
+        budget_downsample(pts, normals, colors, 0.0, 0)
+
+
+def test_init_from_cloud_respects_the_surfel_budget(problem):
+    scene, cloud, _ = problem
+    cfg, _ = tiny_config()
+    free = init_from_cloud(cloud, scene, cfg)
+    budget = free.num // 3
+    capped = init_from_cloud(cloud, scene, replace(cfg, densify=replace(cfg.densify, max_surfels=budget)))
+    assert 0 < capped.num <= budget < free.num
 
 
 def test_black_images_invalid_priors_and_zero_features(problem, tmp_path):

@@ -22,8 +22,8 @@ from pipeline.optimize.surfels import SurfelInitError, SurfelParams, init_params
 from pipeline.optimize.train import NonFiniteLossError, TrainResult, train
 from pipeline.optimize.views import TrainViews
 
-__all__ = ["NonFiniteLossError", "SurfelInitError", "TrainResult", "init_from_cloud", "make_views", "train",
-           "uses_masks"]
+__all__ = ["NonFiniteLossError", "SurfelInitError", "TrainResult", "budget_downsample", "init_from_cloud", "make_views",
+           "train", "uses_masks"]
 
 
 def uses_masks(scene: Scene, cfg: OptimizeConfig) -> bool:
@@ -34,14 +34,15 @@ def uses_masks(scene: Scene, cfg: OptimizeConfig) -> bool:
 
 
 def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where: str = "init cloud") -> SurfelParams:
-    """Surfels from an init cloud (world mm -> the normalised frame of ``scene``)."""
+    """Surfels from an init cloud (world mm -> the normalised frame of ``scene``).
+
+    The cloud is averaged in voxels of ``cfg.init_voxel_norm``, coarser ones while it holds
+    more points than the surfel budget ``cfg.densify.max_surfels``, so a budget caps the
+    whole run and not only densification, and the kept points still cover the object."""
     S = scene.norm_to_world
     pts = (np.asarray(cloud.points_mm, np.float64) - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
     normals, colors = cloud.normals.astype(np.float64), cloud.colors.astype(np.float64)
-    if cfg.init_voxel_norm > 0 and len(pts):
-        pts, normals, colors = voxel_downsample(pts, cfg.init_voxel_norm, normals, colors)
-        norm = np.linalg.norm(normals, axis=1, keepdims=True)
-        normals = np.where(norm > 1e-9, normals / np.maximum(norm, 1e-12), [0.0, 0.0, 1.0])
+    pts, normals, colors = budget_downsample(pts, normals, colors, cfg.init_voxel_norm, cfg.densify.max_surfels)
     rng = np.random.default_rng(cfg.seed)
     return init_params(pts, normals if cfg.init_normals else None, colors, cfg.sh_degree, cfg.init_opacity, rng,
                        where=where)
@@ -50,3 +51,25 @@ def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where:
 def make_views(scene: Scene, priors_dir: str | Path | None, cfg: OptimizeConfig, loss: LossConfig) -> TrainViews:
     return TrainViews(scene, priors_dir, use_masks=uses_masks(scene, cfg), want_normals=loss.lambda_nor > 0,
                       want_features=loss.lambda_gcf > 0, near=cfg.near, far=cfg.far)
+
+
+def budget_downsample(pts: np.ndarray, normals: np.ndarray, colors: np.ndarray, voxel: float,
+                      max_points: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Average ``(N, 3)`` points with their normals and colours in voxels of ``voxel``
+    (0: none), then in voxels grown by sqrt(count / ``max_points``) (points on a surface:
+    their count falls with the voxel's area) until at most ``max_points`` remain."""
+    if max_points < 1:
+        raise ConfigError(f"optimize.densify.max_surfels must be >= 1, got {max_points}")
+    if (voxel <= 0 and len(pts) <= max_points) or not len(pts):
+        return pts, normals, colors
+    out = voxel_downsample(pts, voxel, normals, colors) if voxel > 0 else (pts, normals, colors)
+    if len(out[0]) > max_points:
+        # Start from the spacing that max_points would have on the bounding box's largest face.
+        ext = np.sort(np.ptp(pts, axis=0))
+        size = max(voxel, float(np.sqrt(ext[1] * ext[2] / max_points)), 1e-12)
+        while len(out[0]) > max_points:
+            out = voxel_downsample(pts, size, normals, colors)
+            size *= max(1.05, float(np.sqrt(len(out[0]) / max_points)))
+    p, n, c = out
+    norm = np.linalg.norm(n, axis=1, keepdims=True)  # averaged normals: unit again, a default where they cancel
+    return p, np.where(norm > 1e-9, n / np.maximum(norm, 1e-12), [0.0, 0.0, 1.0]), c
