@@ -3,6 +3,7 @@ and its failure modes. Scenes are small (<= 200x150) to keep this file fast."""
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -157,7 +158,7 @@ def test_mvs_depth_maps_are_metric_and_masked(spheres, mvs_result):
 
 def test_mvs_rejects_textureless_views(spheres):
     scene, _ = spheres
-    flat = type(scene)(**{**scene.__dict__, "images": np.full_like(scene.images, 0.5)})
+    flat = replace(scene, images=np.full_like(scene.images, 0.5))
     res = mvs.sweep_view(flat, 0, InitConfig().mvs)
     assert res.valid.sum() == 0
 
@@ -167,11 +168,17 @@ def plain_spheres():
     return make_scene(200, 150, plain=True)
 
 
-def _fill(scene: type, width: int = 100):
-    params = InitConfig().mvs
-    params = type(params)(**{**params.__dict__, "fill_width": width})
+def _fill_config(width: int = 100) -> InitConfig:
+    """The default init config with the plain-region fill swept ``width`` pixels wide."""
+    cfg = InitConfig()
+    return replace(cfg, mvs=replace(cfg.mvs, fill_width=width))
+
+
+def _fill(scene):
+    """Each view's plain-region fill over its whole mask."""
+    params = _fill_config().mvs
     grey = mvs.common_grey(scene.images, scene.masks)
-    return params, [mvs.sweep_plain(scene, r, params, grey, scene.masks[r]) for r in range(scene.num_views)]
+    return [mvs.sweep_plain(scene, r, params, grey, scene.masks[r]) for r in range(scene.num_views)]
 
 
 def test_plain_shaded_surface_is_found_by_the_fill(plain_spheres):
@@ -180,8 +187,7 @@ def test_plain_shaded_surface_is_found_by_the_fill(plain_spheres):
     scene, gt = plain_spheres
     ncc = mvs.sweep_view(scene, 0, InitConfig().mvs).valid
     assert ncc.sum() < 0.5 * scene.masks[0].sum(), ncc.sum() / scene.masks[0].sum()
-    _, fills = _fill(scene)
-    for r, res in enumerate(fills):
+    for r, res in enumerate(_fill(scene)):
         assert not (res.valid & ~scene.masks[r]).any()
         assert res.valid.sum() > 0.75 * scene.masks[r].sum(), (r, res.valid.sum(), scene.masks[r].sum())
         rel = np.abs(res.depth_mm[res.valid] - gt[r][res.valid]) / gt[r][res.valid]
@@ -192,30 +198,26 @@ def test_plain_shaded_surface_is_found_by_the_fill(plain_spheres):
 
 def test_fill_ignores_exposure_and_needs_shading(plain_spheres):
     scene, _ = plain_spheres
-    _, fills = _fill(scene)
-    darker = type(scene)(**{**scene.__dict__, "images": scene.images * 0.3})
-    _, fills_dark = _fill(darker)
-    for a, b in zip(fills, fills_dark):
+    for a, b in zip(_fill(scene), _fill(replace(scene, images=scene.images * 0.3))):
         assert np.array_equal(a.valid, b.valid)
         np.testing.assert_allclose(a.depth_mm, b.depth_mm, rtol=1e-4)
     # One grey everywhere: every depth fits equally, so nothing is filled.
     one_grey = np.where(scene.masks[..., None], 0.5, 0.05) * np.ones(3)
-    flat = type(scene)(**{**scene.__dict__, "images": one_grey.astype(np.float32)})
-    assert sum(r.valid.sum() for r in _fill(flat)[1]) == 0
+    flat = replace(scene, images=one_grey.astype(np.float32))
+    assert sum(r.valid.sum() for r in _fill(flat)) == 0
 
 
 def test_mvs_fills_plain_regions_only_where_ncc_fails(spheres, plain_spheres, mvs_result):
     scene, _ = plain_spheres
-    cfg = InitConfig()
-    with_fill = mvs.run(scene, type(cfg)(**{**cfg.__dict__, "mvs": _fill(scene)[0]}))
-    without = mvs.run(scene, type(cfg)(**{**cfg.__dict__, "mvs": type(cfg.mvs)(**{**cfg.mvs.__dict__, "fill_width": 0})}))
+    with_fill = mvs.run(scene, _fill_config())
+    without = mvs.run(scene, _fill_config(width=0))
     assert len(without.cloud) < 0.5 * len(with_fill.cloud), (len(without.cloud), len(with_fill.cloud))
     d = distance_to_spheres(with_fill.cloud.points_mm, scene)
     coarse_px_mm = 680.0 / scene.K[0, 0, 0] * scene.width / 100  # a fill pixel at the object (~680 mm)
     assert np.median(d) < 0.5 * coarse_px_mm and np.percentile(d, 90) < 1.5 * coarse_px_mm, (
         np.median(d), np.percentile(d, 90), coarse_px_mm)
     # On a textured scene NCC matches nearly every pixel and the fill adds only what stays consistent.
-    textured = mvs.run(spheres[0], type(cfg)(**{**cfg.__dict__, "mvs": _fill(spheres[0])[0]}))
+    textured = mvs.run(spheres[0], _fill_config())
     assert len(textured.cloud) >= len(mvs_result.cloud)
     assert np.median(distance_to_spheres(textured.cloud.points_mm, spheres[0])) < 0.8
 
