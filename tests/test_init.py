@@ -14,6 +14,7 @@ from mast3r_helpers import FakeMASt3R, PassThrough, WrongRank, export, pair_scal
 from pipeline import geometry
 from pipeline.cli import main
 from pipeline.config import InitConfig
+from pipeline.atomic import MARKER
 from pipeline.data.dtu import write_scene
 from pipeline.init import mast3r, mvs, random_init, sfm
 from pipeline.init.fusion import check_consistency, voxel_downsample
@@ -345,10 +346,10 @@ def test_cli_bad_scene_is_named(tmp_path, capsys):
 def test_cli_replaces_previous_output(small_scene, tmp_path):
     scene_dir = _write(small_scene[0], tmp_path / "scene")
     out = tmp_path / "init"
-    out.mkdir()
-    (out / "stale.txt").write_text("old")
+    assert main(["init", "--scene", str(scene_dir), "--backend", "random", "--out-dir", str(out)]) == 0
+    (out / "stale.txt").write_text("old")  # inside a folder gcgs wrote: replaced with it
     assert main(["init", "--scene", str(scene_dir), "--backend", "sfm", "--out-dir", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["init.json", "points.ply"]  # no depth for sfm
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "init.json", "points.ply"]  # no depth for sfm
 
 
 def test_mast3r_input_size_fixed_or_512_long_side(tmp_path):

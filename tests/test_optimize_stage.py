@@ -12,6 +12,7 @@ import yaml
 
 from optimize_scene import tiny_problem
 from pipeline import cli
+from pipeline.atomic import MARKER
 from pipeline.config import load_params
 from pipeline.data import dtu
 from pipeline.init.io import write_ply
@@ -51,7 +52,7 @@ def test_two_runs_give_identical_bytes_and_a_mesh(stage_inputs):
     root, priors = stage_inputs
     assert _optimize(root, priors, "a") == 0 and _optimize(root, priors, "b") == 0
     assert _digest(root / "a") == _digest(root / "b")
-    assert sorted(p.name for p in (root / "a").iterdir()) == ["surfels.ply", "train.json"]
+    assert sorted(p.name for p in (root / "a").iterdir()) == [MARKER, "surfels.ply", "train.json"]
     train = json.loads((root / "a" / "train.json").read_text())
     assert train["iterations"] == 10 and train["surfels_final"] > 0 and "wall_s" not in json.dumps(train)
     timing = json.loads((root / "a_timing.json").read_text())
@@ -66,7 +67,8 @@ def test_two_runs_give_identical_bytes_and_a_mesh(stage_inputs):
 
 def test_a_missing_init_cloud_is_named(stage_inputs, tmp_path, capsys):
     root, priors = stage_inputs
-    rc = cli.main(["optimize", "--scene", str(root / "scene"), "--init-dir", str(tmp_path), "--priors-dir",
+    (tmp_path / "no_init").mkdir()
+    rc = cli.main(["optimize", "--scene", str(root / "scene"), "--init-dir", str(tmp_path / "no_init"), "--priors-dir",
                    str(priors), "--out-dir", str(tmp_path / "out"), "--params", str(root / "params.yaml"),
                    "--checkpoint", str(tmp_path / "c.pt"), "--metrics", str(tmp_path / "m.json"),
                    "--live-dir", str(tmp_path / "live"), "--no-progress"])
@@ -76,10 +78,35 @@ def test_a_missing_init_cloud_is_named(stage_inputs, tmp_path, capsys):
 
 def test_missing_priors_are_named(stage_inputs, tmp_path, capsys):
     root, _ = stage_inputs
+    (tmp_path / "no_priors").mkdir()
     rc = cli.main(["optimize", "--scene", str(root / "scene"), "--init-dir", str(root / "init"), "--priors-dir",
-                   str(tmp_path), "--out-dir", str(tmp_path / "out"), "--params", str(root / "params.yaml"),
+                   str(tmp_path / "no_priors"), "--out-dir", str(tmp_path / "out"), "--params", str(root / "params.yaml"),
                    "--checkpoint", str(tmp_path / "c.pt"), "--metrics", str(tmp_path / "m.json"),
                    "--live-dir", str(tmp_path / "live"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 1 and "missing" in err and "prior" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_ctrl_c_is_one_line_naming_the_checkpoint_and_the_rerun_resumes(stage_inputs, capsys, monkeypatch):
+    from pipeline.optimize.train import Trainer
+
+    root, priors = stage_inputs
+    step = Trainer.step
+
+    def interrupted_at_6(self):
+        if self.it == 6:
+            raise KeyboardInterrupt
+        return step(self)
+
+    monkeypatch.setattr(Trainer, "step", interrupted_at_6)
+    assert _optimize(root, priors, "ctrl_c") == 130
+    lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(lines) == 1, lines
+    assert f"checkpoint {root / 'ctrl_c.pt'} (iteration 4) resumes it: rerun the same command" in lines[0]
+    assert not (root / "ctrl_c").exists() and (root / "ctrl_c.pt").is_file()
+    monkeypatch.setattr(Trainer, "step", step)
+    assert _optimize(root, priors, "ctrl_c") == 0
+    assert json.loads((root / "ctrl_c_timing.json").read_text())["resumed_from"] == 4
+    assert _optimize(root, priors, "uninterrupted") == 0
+    assert _digest(root / "ctrl_c") == _digest(root / "uninterrupted")

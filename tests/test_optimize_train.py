@@ -12,8 +12,10 @@ import torch
 from optimize_scene import tiny_config, tiny_problem
 from pipeline.init.io import PointCloud
 from pipeline.config import ConfigError
+from pipeline.errors import DegenerateResultError
 from pipeline.optimize import NonFiniteLossError, SurfelInitError, budget_downsample, init_from_cloud, make_views, train
 from pipeline.optimize.run import timing_report
+from pipeline.optimize.surfels import init_params
 from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals
 from pipeline.priors.io import write_features, write_normals
 
@@ -94,7 +96,14 @@ def test_init_cloud_of_zero_and_one_point(problem):
     with pytest.raises(SurfelInitError, match="no point"):
         init_from_cloud(empty, scene, cfg)
     one = PointCloud(cloud.points_mm[:1], cloud.colors[:1], cloud.normals[:1], cloud.confidence[:1])
-    _finite(_run(scene, one, priors, cfg, loss))
+    with pytest.raises(DegenerateResultError, match="too few to seed a surface"):
+        init_from_cloud(one, scene, cfg)
+    # The trainer's numerics still hold for a single surfel (densification may grow it).
+    S = scene.norm_to_world
+    p = (cloud.points_mm[:1] - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
+    params = init_params(p, cloud.normals[:1], cloud.colors[:1], cfg.sh_degree, cfg.init_opacity,
+                         np.random.default_rng(0))
+    _finite(train(params, make_views(scene, priors, cfg, loss), cfg, loss, log_every=1))
 
 
 def test_budget_caps_the_init_cloud_and_keeps_its_extent():

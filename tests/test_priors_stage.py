@@ -11,6 +11,7 @@ import yaml
 from onnx_helpers import FakeVisMVSNet, export_fake_dsine, export_fake_vismvsnet
 from relief_scene import write_relief_scene
 from pipeline import cli
+from pipeline.atomic import MARKER
 from pipeline.config import PARAMS_PATH
 from pipeline.data import dtu
 from pipeline.priors.io import features_path, normals_path, read_features, read_normals
@@ -114,6 +115,7 @@ def test_bad_models_and_scenes_fail_cleanly(setup, tmp_path, capsys):
     out = tmp_path / "out"
     out.mkdir()
     (out / "old.txt").write_text("previous result")
+    (out / MARKER).write_text('{"written_by": "gcgs", "kind": "priors"}')  # an earlier priors output
     bad = tmp_path / "broken.onnx"
     bad.write_bytes(b"\x08\x01garbage")
     assert run_cli(setup, out, "--features", "vismvsnet", "--vismvsnet-model", str(bad)) == 1
@@ -130,7 +132,7 @@ def test_bad_models_and_scenes_fail_cleanly(setup, tmp_path, capsys):
     assert cli.main(["priors", "--scene", str(tmp_path / "noscene"), "--out-dir", str(out)]) == 1
     assert "noscene: scene directory not found" in capsys.readouterr().err
     # The previous output is untouched and no temporary folder is left behind.
-    assert sorted(p.name for p in out.iterdir()) == ["old.txt"]
+    assert sorted(p.name for p in out.iterdir()) == [MARKER, "old.txt"]
     assert leftovers(tmp_path, "out") == []
 
 

@@ -188,3 +188,26 @@ def test_every_part_of_a_multi_part_object_survives(tmp_path, capsys):
     facts = json.loads(captured.out.strip().splitlines()[-1])
     assert facts["components_kept"] == 1
     assert "warning" in captured.err and "lower mesh.min_component_fraction" in captured.err
+
+
+@pytest.mark.parametrize("slant_deg", [0.0, 30.0, 60.0])
+def test_a_slanted_plane_fuses_onto_itself(slant_deg):
+    """Exact depth of a plane 685 mm away at 800x600 (voxel 0.92 mm, the default at DTU scale):
+    the fused surface lies on the plane (mean offset under 0.02 mm). Handing Open3D the
+    integer-pixel-centre K unchanged put it 0.11 mm off at 30 degrees and 0.21 mm at 60 in this
+    test (Open3D's depth pixel u covers [u, u + 1))."""
+    W, H, f, z0 = 800, 600, 1450.0, 685.0
+    K = np.array([[f, 0.0, 399.5], [0.0, f, 299.5], [0.0, 0.0, 1.0]])
+    a = np.radians(slant_deg)
+    n = np.array([np.sin(a), 0.0, np.cos(a)])  # plane n . x = n . (0, 0, z0), camera at the origin
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    rays = np.stack([(u - K[0, 2]) / f, (v - K[1, 2]) / f, np.ones_like(u)], -1)
+    depth = (n @ [0.0, 0.0, z0]) / (rays @ n)  # camera z of the ray's hit (the ray's z is 1)
+    keep = np.zeros((H, W), bool)
+    keep[150:450, 250:550] = True
+    voxel = 0.92
+    mesh = tsdf.fuse_depth_maps(np.where(keep, depth, 0.0)[None], K[None], np.eye(4)[None], None, voxel, 4 * voxel,
+                                2000.0)
+    signed = mesh.vertices_mm @ n - n @ [0.0, 0.0, z0]
+    assert len(signed) > 1000
+    assert abs(np.mean(signed)) < 0.02

@@ -1,27 +1,226 @@
-"""Atomic outputs: a file or folder appears complete or not at all.
+"""Outputs that appear complete or not at all, and never destroy what gcgs did not write.
 
-Each helper yields a temporary path next to the target (same file system, so the final
-``os.replace`` is atomic); on success it replaces the target, on any error it removes the
-temporary and re-raises, leaving no half-written output behind.
+A folder output (:func:`atomic_dir`) is claimed before any work: the path is checked (not
+the current folder or one holding it, not equal to, inside or around an input, not a file,
+and, if it exists, either empty or a folder gcgs wrote for the same kind of output, known
+by its marker file ``.gcgs-output``), and a lock next to it keeps a second writer out.
+The work writes into a temporary sibling folder; on success that folder is swapped in
+atomically (Linux ``renameat2(RENAME_EXCHANGE)``; elsewhere the old folder is renamed
+aside first and recovered by the next run if a kill falls between the two renames), and
+the old output is deleted only after the new one is in place. On any error the temporary
+folder is removed and the old output is untouched. Temporary folders a killed run left
+behind are removed by the next writer of the same output.
+
+A file output (:func:`atomic_file`) is written to a temporary sibling and renamed over the
+target; it refuses a target that is a folder or one of the inputs.
 """
 from __future__ import annotations
 
+import ctypes
+import errno
+import fcntl
+import json
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from pipeline.errors import OutputError
+
+MARKER = ".gcgs-output"  # in every finished output folder: JSON {"written_by": "gcgs", "kind": KIND}
+PARTIAL = ".gcgs-partial"  # in a temporary folder until it is swapped in
+
+
+def _resolved(path: str | Path) -> Path:
+    return Path(os.path.abspath(Path(path).expanduser())).resolve()
+
+
+def _within(inner: Path, outer: Path) -> bool:
+    return inner == outer or outer in inner.parents
+
+
+def marker_kind(folder: Path) -> str | None:
+    """The output kind recorded in ``folder``'s marker, ``None`` without a readable one."""
+    try:
+        return str(json.loads((folder / MARKER).read_text())["kind"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def check_output_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path | None] = ()) -> Path:
+    """Refuse (:class:`OutputError`, one line) an output folder whose replacement could lose
+    data: the current folder or one holding it, a path equal to, inside or holding an input,
+    an existing file, or an existing non-empty folder that is not a gcgs ``kind`` output.
+    Returns the resolved path. Cheap: stages call it before any long work."""
+    out = _resolved(out_dir)
+    cwd = _resolved(Path.cwd())
+    if _within(cwd, out):
+        raise OutputError(f"{out_dir}: output folder is the current folder or holds it; "
+                          "replacing it would delete the current folder: choose a new folder")
+    for given in inputs:
+        if given is None:
+            continue
+        src = _resolved(given)
+        if _within(out, src) or _within(src, out):
+            where = "is" if out == src else ("lies inside" if _within(out, src) else "holds")
+            raise OutputError(f"{out_dir}: output folder {where} the input {given}; "
+                              "writing it would destroy the input: choose another output folder")
+    if out.is_symlink() or (out.exists() and not out.is_dir()):
+        raise OutputError(f"{out_dir}: output path exists and is not a folder; remove it or choose another path")
+    if out.is_dir() and any(out.iterdir()):
+        found = marker_kind(out)
+        if found is None:
+            raise OutputError(f"{out_dir}: folder exists, is not empty and was not written by gcgs (no {MARKER} "
+                              "marker); refusing to replace it: choose a new folder or remove it yourself")
+        if found != kind:
+            raise OutputError(f"{out_dir}: folder holds a gcgs {found} output, not a {kind} output; "
+                              "refusing to replace it: choose another output folder")
+    return out
+
+
+class _OutputLock:
+    """An exclusive ``flock`` on ``.NAME.lock`` beside the output, released (and the file
+    removed) on exit or when the process dies. Fails at once when another process holds it."""
+
+    def __init__(self, out: Path, shown: str | Path):
+        self.path = out.parent / f".{out.name}.lock"
+        self.shown = shown
+        self.fd: int | None = None
+
+    def __enter__(self) -> _OutputLock:
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError as exc:
+                os.close(fd)
+                if exc.errno in (errno.EWOULDBLOCK, errno.EAGAIN, errno.EACCES):
+                    raise OutputError(f"{self.shown}: another gcgs process is writing this output (lock {self.path}); "
+                                      "wait for it to finish") from None
+                raise
+            try:  # the holder before us may have removed the file after we opened it
+                same = os.fstat(fd).st_ino == os.stat(self.path).st_ino
+            except FileNotFoundError:
+                same = False
+            if same:
+                self.fd = fd
+                return self
+            os.close(fd)
+
+    def __exit__(self, *exc) -> None:
+        if self.fd is not None:
+            Path(self.path).unlink(missing_ok=True)  # while still held: no one else holds this inode
+            os.close(self.fd)
+            self.fd = None
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap two paths atomically (Linux renameat2 RENAME_EXCHANGE); ``False`` where the
+    system or file system cannot."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).renameat2
+    except (OSError, AttributeError):
+        return False
+    at_fdcwd, rename_exchange = -100, 2
+    if fn(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), rename_exchange) == 0:
+        return True
+    err = ctypes.get_errno()
+    if err in (errno.EINVAL, errno.ENOSYS, errno.ENOTSUP):
+        return False
+    raise OSError(err, os.strerror(err), str(b))
+
+
+def _clean_leftovers(out: Path) -> None:
+    """Remove the temporary folders a killed writer of ``out`` left; put back an old output
+    that a kill left renamed aside (the non-exchange swap). Called with the lock held."""
+    for p in sorted(out.parent.glob(f".{out.name}.old-*")):
+        if p.is_dir() and (p / MARKER).is_file():
+            if not out.exists():
+                os.replace(p, out)
+            else:
+                shutil.rmtree(p, ignore_errors=True)
+    for p in out.parent.glob(f".{out.name}.tmp-*"):
+        if p.is_dir() and (p / PARTIAL).is_file():
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _swap_in(tmp: Path, out: Path) -> None:
+    if not out.exists():
+        os.replace(tmp, out)
+        return
+    if _exchange(tmp, out):
+        shutil.rmtree(tmp)  # the old output, now at tmp
+        return
+    aside = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    os.rmdir(aside)
+    os.replace(out, aside)
+    os.replace(tmp, out)
+    shutil.rmtree(aside)
+
+
+def _unwritable(path: str | Path, exc: OSError) -> OutputError:
+    return OutputError(f"{path}: cannot write the output there ({exc.strerror or exc})")
+
 
 @contextmanager
-def atomic_file(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
+def atomic_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path | None] = ()) -> Iterator[Path]:
+    """Claim ``out_dir`` (:func:`check_output_dir`, then a lock) and yield an empty temporary
+    folder; when the block succeeds its contents, with the marker of ``kind``, replace
+    ``out_dir`` atomically. Open it before the long work, so bad paths fail first and a
+    second writer is refused."""
+    out = check_output_dir(out_dir, kind, inputs)
+    try:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        lock = _OutputLock(out, out_dir).__enter__()
+    except OSError as exc:
+        raise _unwritable(out.parent, exc) from exc
+    try:
+        _clean_leftovers(out)
+        check_output_dir(out_dir, kind, inputs)  # again, now that no one else writes it
+        try:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
+        except OSError as exc:
+            raise _unwritable(out.parent, exc) from exc
+        try:
+            (tmp / PARTIAL).touch()
+            yield tmp
+            os.chmod(tmp, 0o755)  # mkdtemp creates 0700
+            (tmp / MARKER).write_text(json.dumps({"written_by": "gcgs", "kind": kind}) + "\n")
+            (tmp / PARTIAL).unlink()
+            _swap_in(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+    finally:
+        lock.__exit__()
+
+
+def check_output_file(path: str | Path, inputs: Iterable[str | Path | None] = ()) -> Path:
+    """Refuse (one line) an output file path that is a folder or one of ``inputs``."""
+    out = _resolved(path)
+    if out.is_dir():
+        raise OutputError(f"{path}: output file path is a folder; give a file name")
+    for given in inputs:
+        if given is not None and _resolved(given) == out:
+            raise OutputError(f"{path}: output file is the input {given}; writing it would destroy the input")
+    return out
+
+
+@contextmanager
+def atomic_file(path: str | Path, suffix: str | None = None,
+                inputs: Iterable[str | Path | None] = ()) -> Iterator[Path]:
     """Yield a temporary file path; it becomes ``path`` when the block succeeds.
     ``suffix`` (default: ``path``'s) keeps writers that infer the format from it happy."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix if suffix is None else suffix,
-                               dir=path.parent)
+    check_output_file(path, inputs)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix if suffix is None else suffix,
+                                   dir=path.parent)
+    except OSError as exc:
+        raise _unwritable(path, exc) from exc
     os.close(fd)
     try:
         yield Path(tmp)
@@ -29,23 +228,6 @@ def atomic_file(path: str | Path, suffix: str | None = None) -> Iterator[Path]:
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
-        raise
-
-
-@contextmanager
-def atomic_dir(out_dir: str | Path) -> Iterator[Path]:
-    """Yield an empty temporary folder; it replaces ``out_dir`` when the block succeeds."""
-    out_dir = Path(out_dir)
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
-    try:
-        yield tmp
-        os.chmod(tmp, 0o755)  # mkdtemp creates 0700
-        if out_dir.exists():
-            shutil.rmtree(out_dir)
-        os.replace(tmp, out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
         raise
 
 

@@ -7,7 +7,7 @@ import argparse
 import importlib
 import sys
 
-from pipeline.errors import InputError
+from pipeline.errors import InputError, Interrupted
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -57,10 +57,17 @@ def main(argv: list[str] | None = None) -> int:
     try:
         return int(module.run(args) or 0)
     except InputError as exc:
-        # Bad input (SceneError, CameraError, ConfigError ...) names the file and the
-        # problem: one line. Anything else is a bug and keeps its traceback.
+        # Bad input (SceneError, CameraError, ConfigError, OutputError ...) names the file and
+        # the problem: one line. Anything else is a bug and keeps its traceback.
         print(f"gcgs {args.command}: error: {exc}", file=sys.stderr)
         return 1
+    except Interrupted as exc:
+        print(f"gcgs {args.command}: {exc}", file=sys.stderr)
+        return 130
+    except KeyboardInterrupt:
+        print(f"gcgs {args.command}: interrupted; nothing was written (outputs appear only when complete)",
+              file=sys.stderr)
+        return 130
 
 
 if __name__ == "__main__":

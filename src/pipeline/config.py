@@ -16,7 +16,6 @@ from typing import Any, TypeVar
 import yaml
 
 from pipeline.errors import ConfigError, MissingInputError
-from pipeline.init import BACKEND_MODULES
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 CONF_DIR = REPO_ROOT / "conf"
@@ -176,7 +175,7 @@ class InitConfig:
     sfm: SfMConfig = field(default_factory=SfMConfig)
     mast3r: MASt3RConfig = field(default_factory=MASt3RConfig)
 
-    BACKENDS = tuple(BACKEND_MODULES)
+    BACKENDS = ("mvs", "sfm", "mast3r", "random")  # pipeline.init.BACKEND_MODULES implements each
 
     def __post_init__(self) -> None:
         nested_sections(self, "init", mvs=MVSConfig, consistency=ConsistencyConfig, sfm=SfMConfig, mast3r=MASt3RConfig)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import json
 import re
-import shutil
+from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -257,35 +257,44 @@ def write_scene(
     norm_to_world: np.ndarray,
     masks: dict[int, np.ndarray] | None = None,
     meta: dict | None = None,
-    extra: dict[str, Path] | None = None,
+    inputs: tuple[str | Path, ...] = (),
 ) -> Path:
-    """Write a scan in the DTU layout, atomically (a temp dir renamed into place).
+    """Write a scan in the DTU layout as a gcgs ``scene`` output (:func:`pipeline.atomic.atomic_dir`:
+    checked against ``inputs``, complete or not at all). Arguments as :func:`write_scene_files`."""
+    out_dir = Path(out_dir)
+    with atomic_dir(out_dir, "scene", inputs) as tmp:
+        write_scene_files(tmp, images, K, world_to_cam, norm_to_world, masks, meta)
+    return out_dir
+
+
+def write_scene_files(
+    folder: Path,
+    images: dict[int, np.ndarray],
+    K: dict[int, np.ndarray],
+    world_to_cam: dict[int, np.ndarray],
+    norm_to_world: np.ndarray,
+    masks: dict[int, np.ndarray] | None = None,
+    meta: dict | None = None,
+) -> None:
+    """Write a scan's files into the existing ``folder`` (a caller's atomic temporary folder).
 
     ``images``/``masks`` map view id to an RGB float/uint8 image or a bool mask.
-    Cameras may cover more views than ``images`` (held-out views). ``extra`` maps a
-    relative path inside the scan to a file or folder to move in before the rename.
+    Cameras may cover more views than ``images`` (held-out views).
     """
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
-        (tmp / "image").mkdir()
-        for v, img in images.items():
-            _write_png(tmp / "image" / f"{v:06d}.png", img)
-        if masks:
-            (tmp / "mask").mkdir()
-            for v, m in masks.items():
-                _write_png(tmp / "mask" / f"{v:03d}.png", np.asarray(m, dtype=np.uint8) * 255)
-        cams = {}
-        for v in sorted(K):
-            cams[f"world_mat_{v}"] = geometry.compose_projection(K[v], world_to_cam[v])
-            cams[f"scale_mat_{v}"] = np.asarray(norm_to_world, dtype=np.float64)
-        np.savez(tmp / "cameras_sphere.npz", **cams)
-        if meta is not None:
-            (tmp / "scene.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
-        for rel, src in (extra or {}).items():
-            dst = tmp / rel
-            dst.parent.mkdir(parents=True, exist_ok=True)
-            shutil.move(str(src), str(dst))
-    return out_dir
+    (folder / "image").mkdir()
+    for v, img in images.items():
+        _write_png(folder / "image" / f"{v:06d}.png", img)
+    if masks:
+        (folder / "mask").mkdir()
+        for v, m in masks.items():
+            _write_png(folder / "mask" / f"{v:03d}.png", np.asarray(m, dtype=np.uint8) * 255)
+    cams = {}
+    for v in sorted(K):
+        cams[f"world_mat_{v}"] = geometry.compose_projection(K[v], world_to_cam[v])
+        cams[f"scale_mat_{v}"] = np.asarray(norm_to_world, dtype=np.float64)
+    np.savez(folder / "cameras_sphere.npz", **cams)
+    if meta is not None:
+        (folder / "scene.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
 
 
 def first_image(root: str | Path) -> Path:
@@ -296,10 +305,31 @@ def first_image(root: str | Path) -> Path:
     return files[min(files)]
 
 
+def image_size(path: Path) -> tuple[int, int]:
+    """``(width, height)`` of an image file, from its header."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise SceneError(f"{path}: not a readable image ({exc})") from exc
+
+
 def stored_image_size(root: str | Path) -> tuple[int, int]:
-    """``(width, height)`` of the stored images of a scan (the size its cameras are for)."""
-    h, w = read_image(first_image(root)).shape[:2]
-    return w, h
+    """``(width, height)`` of the stored images of a scan: the size its cameras are for, so
+    every image must have it. An image of another size is an error naming it (the size
+    most images have is taken as the scan's)."""
+    files = _numbered_files(find_image_dir(Path(root)))
+    if not files:
+        raise SceneError(f"{root}: no images")
+    sizes = {p: image_size(p) for p in files.values()}
+    common = Counter(sizes.values()).most_common(1)[0][0]
+    for p, size in sizes.items():
+        if size != common:
+            raise SceneError(f"{p}: size {size[0]}x{size[1]} differs from the scan's other images "
+                             f"({common[0]}x{common[1]}); every image must have the size its camera is for")
+    return common
 
 
 def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
@@ -310,8 +340,11 @@ def resize_mask(mask: np.ndarray, width: int, height: int) -> np.ndarray:
     return cv2.resize(mask.astype(np.float32), (width, height), interpolation=interp) > 0.5
 
 
-def load_masks(root: str | Path, view_ids: list[int] | None = None) -> dict[int, np.ndarray]:
-    """Masks of a scan by view id (all of them by default), at their stored size."""
+def load_masks(root: str | Path, view_ids: list[int] | None = None,
+               size: tuple[int, int] | None = None) -> dict[int, np.ndarray]:
+    """Masks of a scan by view id (all of them by default), at their stored size, or at
+    ``size`` ``(width, height)``: then a mask of another aspect ratio is an error naming it
+    (resizing would squash it)."""
     mask_dir = Path(root) / "mask"
     if not mask_dir.is_dir():
         raise SceneError(f"{root}: no mask/ directory")
@@ -321,7 +354,14 @@ def load_masks(root: str | Path, view_ids: list[int] | None = None) -> dict[int,
     for v in ids:
         if v not in files:
             raise SceneError(f"{mask_dir}: no mask for view {v}")
-        out[v] = read_mask(files[v])
+        m = read_mask(files[v])
+        if size is not None:
+            h, w = m.shape
+            if abs(size[1] - size[0] * h / w) >= 1.0:
+                raise SceneError(f"{files[v]}: mask is {w}x{h} (aspect {w / h:.3f}) but the images are "
+                                 f"{size[0]}x{size[1]} (aspect {size[0] / size[1]:.3f}); resizing would squash it")
+            m = resize_mask(m, *size)
+        out[v] = m
     return out
 
 

@@ -1,6 +1,8 @@
 """The scene model: posed images of one object, with units and frames explicit."""
 from __future__ import annotations
 
+import hashlib
+import json
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -84,6 +86,16 @@ class Scene:
         out[:, 3] = [0.0, 0.0, 0.0, 1.0]
         return out
 
+    def fingerprint(self) -> str:
+        """A short hash of the views, their pixels and cameras: outputs computed from a
+        scene record it, so a later stage can refuse another scene's outputs."""
+        h = hashlib.sha256()
+        h.update(json.dumps([list(map(int, self.view_ids)), self.width, self.height]).encode())
+        h.update(np.round(self.images * 255.0).astype(np.uint8).tobytes())
+        for arr in (self.K, self.world_to_cam, self.norm_to_world):
+            h.update(np.round(np.asarray(arr, np.float64), 6).tobytes())
+        return h.hexdigest()[:16]
+
     def projections_world(self) -> np.ndarray:
         """``(N, 4, 4)`` DTU-style projections ``K [R | t]`` (world mm -> pixels)."""
         return np.stack([geometry.compose_projection(k, T) for k, T in zip(self.K, self.world_to_cam)])
@@ -101,3 +113,22 @@ def check_scene(scene: Scene, min_views: int = 1, needed_by: str = "this stage")
             raise SceneError(f"{where}: {name} has non-finite values")
     if scene.num_views < min_views:
         raise SceneError(f"{where}: {needed_by} needs at least {min_views} views, got {scene.num_views}")
+
+
+def check_made_from(scene: Scene, folder: str | Path, info_name: str, stage: str) -> dict:
+    """Refuse ``stage``'s output ``folder`` when its facts file ``info_name`` records another
+    scene's fingerprint (:meth:`Scene.fingerprint`): outputs of another scene of the same
+    size would otherwise be used without a word. A folder without that record (a cloud or
+    priors a user made elsewhere) is taken as it is. Returns the facts (``{}`` without)."""
+    path = Path(folder) / info_name
+    if not path.is_file():
+        return {}
+    try:
+        info = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise SceneError(f"{path}: cannot read ({exc})") from exc
+    recorded = info.get("scene_fingerprint") if isinstance(info, dict) else None
+    if recorded is not None and recorded != scene.fingerprint():
+        raise SceneError(f"{path}: this {stage} output was computed from another scene "
+                         f"({info.get('scene', '?')}) than {scene.source}; rerun `gcgs {stage}` for this scene")
+    return info if isinstance(info, dict) else {}

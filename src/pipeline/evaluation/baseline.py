@@ -71,7 +71,7 @@ def baseline_scene(scene_dir: str | Path, init_dir: str | Path, out_dir: str | P
     report: dict = {"scene_dir": str(scene_dir), "init_dir": str(init_dir), "gt": None if gt_dir is None else str(gt_dir),
                     "init_config": dataclasses.asdict(init_cfg), "evaluate_config": dataclasses.asdict(eval_cfg),
                     "backends": {}}
-    with atomic.atomic_dir(out_dir) as tmp:
+    with atomic.atomic_dir(out_dir, "baseline", inputs=(scene_dir, init_dir, gt_dir)) as tmp:
         for backend in BACKEND_MODULES:
             if backend == default:
                 entry: dict = {"status": "ok", "source": f"init stage ({init_dir})",

@@ -10,7 +10,10 @@ from pipeline.config import EvaluateConfig, InitConfig, MeshConfig
 
 
 def backend_cloud(scene_dir: Path, backend: str, cfg: InitConfig, out_ply: Path) -> dict:
-    """Run init ``backend`` on the scene and write its cloud; returns its facts."""
+    """Run init ``backend`` on the scene and write its cloud, with an ``init.json`` beside it
+    that names the scene (so a training on it can check it); returns its facts."""
+    import json
+
     from pipeline.data import dtu
     from pipeline.data.scene import SceneError
     from pipeline.init import run_backend
@@ -21,7 +24,10 @@ def backend_cloud(scene_dir: Path, backend: str, cfg: InitConfig, out_ply: Path)
     if len(result.cloud) == 0:
         raise SceneError(f"{scene_dir}: the {backend} backend found no points")
     write_ply(out_ply, result.cloud)
-    return {"backend": backend, "num_points": len(result.cloud), **result.info}
+    facts = {"backend": backend, "num_points": len(result.cloud), **result.info}
+    (out_ply.parent / "init.json").write_text(json.dumps(
+        {"scene": str(scene_dir), "scene_fingerprint": scene.fingerprint(), **facts}, indent=2, sort_keys=True) + "\n")
+    return facts
 
 
 def tsdf_mesh(init_dir: Path, scene_dir: Path, cfg: MeshConfig, out_ply: Path) -> dict:

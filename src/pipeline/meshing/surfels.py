@@ -16,7 +16,7 @@ import torch
 from pipeline import atomic, geometry
 from pipeline.config import MeshConfig
 from pipeline.data.dtu import load_scene
-from pipeline.data.scene import Scene
+from pipeline.data.scene import Scene, check_made_from
 from pipeline.meshing import tsdf
 from pipeline.optimize.surfels import SurfelParams, read_surfel_ply
 from pipeline.rasterizer import Camera, rasterize
@@ -105,6 +105,8 @@ def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backe
     depth_max = max(np.linalg.norm(geometry.camera_center(T) - centre) for T in Ts) + scene.norm_scale_mm
     mesh = tsdf.fuse_depth_maps(ds, Ks, Ts, cs, voxel, trunc, depth_max)
     mesh, facts = tsdf.keep_components(mesh, cfg.min_component_fraction)
+    if len(mesh.triangles) == 0:
+        raise tsdf.FusionError(f"{scene.source}: the surfels' rendered depth fuses into an empty mesh; nothing written")
     info = {"views_input": scene.num_views, "views_virtual": len(Ts) - scene.num_views, "depth": cfg.depth,
             "depth_pixels": int((ds > 0).sum()), "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
             **facts, "vertices": len(mesh.vertices_mm)}
@@ -115,10 +117,11 @@ def mesh_surfels_dir(scene_dir: str | Path, surfels_dir: str | Path, out_dir: st
                      backend: str = "cpu") -> dict:
     """Files to files: ``surfels_dir/surfels.ply`` of the scene -> ``out_dir/mesh.ply`` and
     ``mesh.json`` (the facts, returned), the folder written atomically."""
-    scene = load_scene(scene_dir, view_ids=None)
-    surfels = read_surfel_ply(Path(surfels_dir) / "surfels.ply", scene.norm_to_world)
-    mesh, info = mesh_from_surfels(surfels, scene, cfg, backend)
-    with atomic.atomic_dir(Path(out_dir)) as tmp:
+    with atomic.atomic_dir(Path(out_dir), "mesh", inputs=(scene_dir, surfels_dir)) as tmp:
+        scene = load_scene(scene_dir, view_ids=None)
+        check_made_from(scene, surfels_dir, "train.json", "optimize")
+        surfels = read_surfel_ply(Path(surfels_dir) / "surfels.ply", scene.norm_to_world)
+        mesh, info = mesh_from_surfels(surfels, scene, cfg, backend)
         tsdf.write_mesh(tmp / "mesh.ply", mesh)
         (tmp / "mesh.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
     return info

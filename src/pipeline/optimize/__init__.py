@@ -16,13 +16,20 @@ import numpy as np
 
 from pipeline.config import ConfigError, LossConfig, OptimizeConfig
 from pipeline.data.scene import Scene
+from pipeline.errors import DegenerateResultError
 from pipeline.init.fusion import voxel_downsample
 from pipeline.init.io import PointCloud
 from pipeline.optimize.surfels import SurfelInitError, SurfelParams, init_params
 from pipeline.optimize.train import NonFiniteLossError, TrainResult, train
 from pipeline.optimize.views import TrainViews
 
-__all__ = ["NonFiniteLossError", "SurfelInitError", "TrainResult", "budget_downsample", "init_from_cloud", "make_views",
+# Fewer points than MIN_INIT_POINTS seed no surface (a sparse SfM cloud of a few dozen
+# still does: densification grows it); a training that ends with fewer than MIN_SURFELS
+# surfels made no surface and writes nothing.
+MIN_INIT_POINTS = 8
+MIN_SURFELS = 32
+
+__all__ = ["MIN_SURFELS", "NonFiniteLossError", "SurfelInitError", "TrainResult", "budget_downsample", "init_from_cloud", "make_views",
            "train", "uses_masks"]
 
 
@@ -43,6 +50,9 @@ def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where:
     pts = (np.asarray(cloud.points_mm, np.float64) - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
     normals, colors = cloud.normals.astype(np.float64), cloud.colors.astype(np.float64)
     pts, normals, colors = budget_downsample(pts, normals, colors, cfg.init_voxel_norm, cfg.densify.max_surfels)
+    if 0 < len(pts) < MIN_INIT_POINTS:
+        raise DegenerateResultError(f"{where}: {len(cloud.points_mm)} init point(s) give {len(pts)} surfels, fewer than "
+                                    f"{MIN_INIT_POINTS}: too few to seed a surface (did the init stage match anything?)")
     rng = np.random.default_rng(cfg.seed)
     return init_params(pts, normals if cfg.init_normals else None, colors, cfg.sh_degree, cfg.init_opacity, rng,
                        where=where)

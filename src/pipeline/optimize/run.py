@@ -9,8 +9,10 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.config import LossConfig, OptimizeConfig
 from pipeline.data.dtu import load_scene
+from pipeline.data.scene import check_made_from
+from pipeline.errors import DegenerateResultError, OutputError
 from pipeline.init.io import read_ply
-from pipeline.optimize import init_from_cloud, make_views, uses_masks
+from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_masks
 from pipeline.optimize.surfels import write_surfel_ply
 from pipeline.optimize.train import TrainResult, train
 
@@ -24,42 +26,67 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
     and ``out_dir/train.json`` (what was trained; no timings, so two runs give the same
     bytes). ``checkpoint`` (outside ``out_dir``) is resumed from when it matches and deleted
     once the output is written; ``live_dir`` receives the dvclive curves."""
-    scene = load_scene(scene_dir, view_ids=None)
-    cloud_path = Path(init_dir) / "points.ply"
-    surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
-    views = make_views(scene, priors_dir, cfg, loss)
+    out_dir, ckpt = Path(out_dir), Path(checkpoint)
+    for extra in (ckpt, live_dir):
+        if extra is not None and _inside(extra, out_dir):
+            raise OutputError(f"{extra}: lies inside the output folder {out_dir}, which is replaced when the run "
+                              "ends; put it beside the output")
+    with atomic.atomic_dir(out_dir, "surfels", inputs=(scene_dir, init_dir, priors_dir)) as tmp:
+        scene = load_scene(scene_dir, view_ids=None)
+        check_made_from(scene, init_dir, "init.json", "init")
+        if priors_dir is not None and (loss.lambda_nor > 0 or loss.lambda_gcf > 0):
+            check_made_from(scene, priors_dir, "priors.json", "priors")
+        cloud_path = Path(init_dir) / "points.ply"
+        surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
+        views = make_views(scene, priors_dir, cfg, loss)
 
-    live = None
-    if live_dir is not None:
-        from dvclive import Live
+        live = None
+        if live_dir is not None:
+            from dvclive import Live
 
-        live = Live(str(live_dir), save_dvc_exp=False, dvcyaml=None, report=None)
+            live = Live(str(live_dir), save_dvc_exp=False, dvcyaml=None, report=None)
 
-    def on_log(row: dict) -> None:
-        live.step = row["iteration"]
-        for k in LOGGED_TERMS:
-            if k in row:
-                live.log_metric(f"train/{k}", row[k], plot=True)
+        def on_log(row: dict) -> None:
+            live.step = row["iteration"]
+            for k in LOGGED_TERMS:
+                if k in row:
+                    live.log_metric(f"train/{k}", row[k], plot=True)
 
-    ckpt = Path(checkpoint)
-    ckpt.parent.mkdir(parents=True, exist_ok=True)
-    result = train(surfels, views, cfg, loss, checkpoint=ckpt, on_log=on_log if live else None, progress=progress)
-    if live is not None:
-        live.end()
+        ckpt.parent.mkdir(parents=True, exist_ok=True)
+        result = train(surfels, views, cfg, loss, checkpoint=ckpt, on_log=on_log if live else None, progress=progress)
+        if live is not None:
+            live.end()
+        if result.params.num < MIN_SURFELS:
+            raise DegenerateResultError(
+                f"{out_dir}: training ended with {result.params.num} surfels (fewer than {MIN_SURFELS}) from "
+                f"{cloud_path}; nothing written (too few init points, or every surfel pruned)")
 
-    facts = {
-        "scene": str(scene_dir), "preset": cfg.preset, "backend": result.backend, "iterations": result.iterations,
-        "surfels_init": result.num_init, "surfels_final": result.params.num,
-        "removed_degenerate": result.removed_degenerate, "masks": uses_masks(scene, cfg),
-        "final_terms": {k: round(v, 6) for k, v in result.final_terms.items() if isinstance(v, float)},
-        "frame": "surfels.ply: world frame, mm (training ran in the normalised frame)",
-        "config": asdict(cfg), "loss": asdict(loss),
-    }
-    with atomic.atomic_dir(out_dir) as tmp:
+        facts = {
+            "scene": str(scene_dir), "scene_fingerprint": scene.fingerprint(), "preset": cfg.preset, "backend": result.backend, "iterations": result.iterations,
+            "surfels_init": result.num_init, "surfels_final": result.params.num,
+            "removed_degenerate": result.removed_degenerate, "masks": uses_masks(scene, cfg),
+            "final_terms": {k: round(v, 6) for k, v in result.final_terms.items() if isinstance(v, float)},
+            "frame": "surfels.ply: world frame, mm (training ran in the normalised frame)",
+            "config": asdict(cfg), "loss": asdict(loss),
+        }
         write_surfel_ply(tmp / "surfels.ply", result.params, scene.norm_to_world)
         (tmp / "train.json").write_text(json.dumps(facts, indent=2, sort_keys=True) + "\n")
     ckpt.unlink(missing_ok=True)  # finished: the output is the state now
     return result
+
+
+def _inside(path: str | Path, folder: Path) -> bool:
+    p, f = Path(path).resolve(), folder.resolve()
+    return p == f or f in p.parents
+
+
+def default_side_paths(out_dir: str | Path) -> dict[str, Path]:
+    """Where ``gcgs optimize`` puts its checkpoint, timing JSON and curves when not told:
+    beside the output, named after it (outside it: the output folder is replaced whole),
+    so two outputs never share them."""
+    out = Path(out_dir)
+    return {"checkpoint": out.parent / f".{out.name}.ckpt.pt", "metrics": out.parent / f"{out.name}.timing.json",
+            "live_dir": out.parent / f"{out.name}.curves"}
 
 
 def timing_report(result: TrainResult, usage: dict, preset: str) -> dict:

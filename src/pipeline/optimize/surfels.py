@@ -20,13 +20,14 @@ import torch
 from scipy.spatial import cKDTree
 
 from pipeline import atomic
+from pipeline.errors import InputError
 from pipeline.rasterizer import Surfels
 
 SH_C0 = 0.28209479177387814
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
 
-class SurfelInitError(ValueError):
+class SurfelInitError(InputError):
     """The init cloud cannot seed surfels (names the file and the problem)."""
 
 
@@ -210,7 +211,10 @@ def read_surfel_ply(path: str | Path, norm_to_world: np.ndarray, dtype=torch.flo
     if "format binary_little_endian 1.0" not in header:
         raise SurfelInitError(f"{path}: only binary little-endian PLY is supported")
     names = [ln.split()[-1] for ln in header if ln.startswith("property")]
-    count = next(int(ln.split()[-1]) for ln in header if ln.startswith("element vertex"))
+    counts = [ln.split()[-1] for ln in header if ln.startswith("element vertex")]
+    if len(counts) != 1 or not counts[0].isdigit():
+        raise SurfelInitError(f"{path}: no valid 'element vertex N' line in the header")
+    count = int(counts[0])
     num_rest = sum(n.startswith("f_rest_") for n in names) // 3
     if names != ply_attribute_names(num_rest):
         raise SurfelInitError(f"{path}: attributes {names[:12]}... are not the 2DGS surfel layout")
@@ -218,6 +222,9 @@ def read_surfel_ply(path: str | Path, norm_to_world: np.ndarray, dtype=torch.flo
     if len(body) != count * len(names) * 4:
         raise SurfelInitError(f"{path}: truncated ({len(body)} bytes for {count} surfels)")
     data = np.frombuffer(body, "<f4").reshape(count, len(names)).astype(np.float64)
+    if not np.all(np.isfinite(data)):
+        bad = np.flatnonzero(~np.isfinite(data).all(axis=1))
+        raise SurfelInitError(f"{path}: {len(bad)} surfel(s) hold NaN or infinite values (first: surfel {bad[0]})")
     S = np.asarray(norm_to_world, np.float64)
     s = float(S[0, 0])
     means = (data[:, 0:3] - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T

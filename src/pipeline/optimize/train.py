@@ -32,6 +32,7 @@ import torch.nn.functional as F
 
 from pipeline import atomic
 from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.errors import Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
 from pipeline.optimize import ops, terms
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
@@ -303,12 +304,35 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
 
         bar = tqdm(total=cfg.iterations, initial=trainer.it, desc="optimize", unit="it", dynamic_ncols=True)
     last: dict = {}
+    try:
+        _loop(trainer, cfg, ckpt, history, last, on_log, log_every, stop_after, bar)
+    except KeyboardInterrupt:
+        saved = (trainer.it // cfg.checkpoint_every) * cfg.checkpoint_every if cfg.checkpoint_every else 0
+        if ckpt is not None and saved > 0 and ckpt.is_file():
+            raise Interrupted(f"interrupted at iteration {trainer.it}; the checkpoint {ckpt} (iteration {saved}) "
+                              "resumes it: rerun the same command") from None
+        raise Interrupted(f"interrupted at iteration {trainer.it}, before the first checkpoint "
+                          f"(every {cfg.checkpoint_every} iterations); a rerun starts over") from None
+    finally:
+        if bar is not None:
+            bar.close()
+    return TrainResult(params=trainer.params, iterations=trainer.it, backend=backend, num_init=trainer.num_init,
+                       history=history, seconds={k: trainer.seconds.get(k, 0.0) for k in TIMED},
+                       removed_degenerate=trainer.removed_degenerate, resumed_from=resumed, spent_before=spent_before,
+                       final_terms={k: v for k, v in last.items() if k not in ("iteration", "view", "seconds")})
+
+
+def _loop(trainer: Trainer, cfg: OptimizeConfig, ckpt: Path | None, history: list[dict], last: dict,
+          on_log: Callable[[dict], None] | None, log_every: int, stop_after: int | None, bar) -> None:
+    """The iterations of :func:`train`; ``history`` gets the logged rows and ``last`` the
+    final row."""
     done = 0
     while trainer.it < cfg.iterations and (stop_after is None or done < stop_after):
         t0, c0 = time.perf_counter(), time.process_time()
         row = trainer.step()
         row["seconds"] = time.perf_counter() - t0
-        last = row
+        last.clear()
+        last.update(row)
         done += 1
         if row["iteration"] % log_every == 0 or trainer.it == cfg.iterations:
             history.append(row)
@@ -323,9 +347,3 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
         trainer.spent["cpu_s"] += time.process_time() - c0
         if ckpt is not None and cfg.checkpoint_every and trainer.it % cfg.checkpoint_every == 0:
             trainer.save_checkpoint(ckpt)
-    if bar is not None:
-        bar.close()
-    return TrainResult(params=trainer.params, iterations=trainer.it, backend=backend, num_init=trainer.num_init,
-                       history=history, seconds={k: trainer.seconds.get(k, 0.0) for k in TIMED},
-                       removed_degenerate=trainer.removed_degenerate, resumed_from=resumed, spent_before=spent_before,
-                       final_terms={k: v for k, v in last.items() if k not in ("iteration", "view", "seconds")})

@@ -9,6 +9,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from pipeline import atomic
 from pipeline.config import DataConfig, EvaluateConfig, load_params, section
 from pipeline.data import dtu
 from pipeline.errors import MissingInputError
@@ -30,6 +31,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    atomic.check_output_file(args.out, inputs=(args.mesh,))
     params = load_params(args.params)
     cfg = section(EvaluateConfig, "evaluate", params, {"cull_views": args.cull})
     views = section(DataConfig, "data", params, {"views": args.views}).views

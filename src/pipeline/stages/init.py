@@ -20,35 +20,35 @@ from pipeline.init.io import InitResult, depth_path, write_depth, write_ply
 from pipeline.measure import measure
 
 
-def write_outputs(out_dir: str | Path, result: InitResult, info: dict) -> Path:
-    """Write points.ply, depth maps and init.json atomically (temp dir, then rename)."""
-    out_dir = Path(out_dir)
-    with atomic_dir(out_dir) as tmp:
-        write_ply(tmp / "points.ply", result.cloud)
-        for d in result.depths or []:
-            write_depth(depth_path(tmp, d.view_id), d)
-        (tmp / "init.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
-    return out_dir
+def write_outputs(folder: Path, result: InitResult, info: dict) -> None:
+    """Write points.ply, depth maps and init.json into ``folder`` (an atomic temporary one)."""
+    write_ply(folder / "points.ply", result.cloud)
+    for d in result.depths or []:
+        write_depth(depth_path(folder, d.view_id), d)
+    (folder / "init.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
 
 
 def run_init(scene_dir: str | Path, out_dir: str | Path, cfg: InitConfig) -> tuple[InitResult, dict]:
-    """Load the scene, run ``cfg.backend`` and write the outputs; returns the result and
-    the facts written to init.json (no timings: identical inputs give identical bytes)."""
-    scene = load_scene(scene_dir, view_ids=None)
-    check_scene(scene, min_views=2, needed_by="init")
-    result = run_backend(cfg.backend, scene, cfg)
-    if len(result.cloud) == 0:
-        raise SceneError(f"{scene_dir}: the {cfg.backend} backend found no points")
-    info = {
-        "scene": str(scene_dir),
-        "backend": cfg.backend,
-        "views": scene.view_ids,
-        "size": [scene.width, scene.height],
-        "num_points": len(result.cloud),
-        "config": dataclasses.asdict(cfg),
-        **result.info,
-    }
-    write_outputs(out_dir, result, info)
+    """Load the scene, run ``cfg.backend`` and write the outputs (a gcgs ``init`` folder,
+    claimed before the work); returns the result and the facts written to init.json (no
+    timings: identical inputs give identical bytes)."""
+    with atomic_dir(out_dir, "init", inputs=(scene_dir, cfg.mast3r.model or None)) as tmp:
+        scene = load_scene(scene_dir, view_ids=None)
+        check_scene(scene, min_views=2, needed_by="init")
+        result = run_backend(cfg.backend, scene, cfg)
+        if len(result.cloud) == 0:
+            raise SceneError(f"{scene_dir}: the {cfg.backend} backend found no points; nothing written to {out_dir}")
+        info = {
+            "scene": str(scene_dir),
+            "scene_fingerprint": scene.fingerprint(),
+            "backend": cfg.backend,
+            "views": scene.view_ids,
+            "size": [scene.width, scene.height],
+            "num_points": len(result.cloud),
+            "config": dataclasses.asdict(cfg),
+            **result.info,
+        }
+        write_outputs(tmp, result, info)
     return result, info
 
 
@@ -63,6 +63,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     cfg = section(InitConfig, "init", load_params(args.params), {"backend": args.backend, "mast3r.model": args.model})
+    if args.metrics:
+        atomic.check_output_file(args.metrics)
     with measure(reset_peak=False) as usage:
         _, info = run_init(args.scene, args.out_dir, cfg)
     print(f"init {cfg.backend}: {info['num_points']} points in {usage.wall_s:.2f} s "

@@ -14,7 +14,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.config import LossConfig, OptimizeConfig, load_params, section
 from pipeline.measure import measure
-from pipeline.optimize.run import run_optimize, timing_report
+from pipeline.optimize.run import default_side_paths, run_optimize, timing_report
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -22,9 +22,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--init-dir", required=True, help="init stage output (points.ply)")
     p.add_argument("--priors-dir", required=True, help="priors stage output (normals/, features/)")
     p.add_argument("--out-dir", required=True, help="writes surfels.ply and train.json")
-    p.add_argument("--checkpoint", default=None, help="checkpoint file (default: data/checkpoints/NAME.pt)")
-    p.add_argument("--metrics", default=None, help="timings JSON (default: reports/train/NAME.json)")
-    p.add_argument("--live-dir", default=None, help="dvclive folder (default: reports/train/NAME)")
+    p.add_argument("--checkpoint", default=None, help="checkpoint file (default: .OUT.ckpt.pt beside OUT)")
+    p.add_argument("--metrics", default=None, help="timings JSON (default: OUT.timing.json beside OUT)")
+    p.add_argument("--live-dir", default=None, help="dvclive folder (default: OUT.curves beside OUT)")
     p.add_argument("--iterations", type=int, default=None, help="default: optimize.iterations")
     p.add_argument("--backend", choices=OptimizeConfig.BACKENDS, default=None, help="default: optimize.backend")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -36,12 +36,14 @@ def run(args: argparse.Namespace) -> int:
     cfg = section(OptimizeConfig, "optimize", params, {"iterations": args.iterations, "backend": args.backend})
     loss = section(LossConfig, "loss", params)
     name = Path(args.out_dir).name
+    side = default_side_paths(args.out_dir)
+    metrics = args.metrics or side["metrics"]
+    atomic.check_output_file(metrics)  # before hours of training, not after
     with measure(reset_peak=False) as usage:
         result = run_optimize(args.scene, args.init_dir, args.priors_dir, args.out_dir, cfg, loss,
-                              checkpoint=args.checkpoint or f"data/checkpoints/{name}.pt",
-                              live_dir=args.live_dir or f"reports/train/{name}", progress=not args.no_progress)
-    atomic.write_text(args.metrics or f"reports/train/{name}.json",
-                      json.dumps(timing_report(result, usage.as_dict(), cfg.preset), indent=2) + "\n")
+                              checkpoint=args.checkpoint or side["checkpoint"],
+                              live_dir=args.live_dir or side["live_dir"], progress=not args.no_progress)
+    atomic.write_text(metrics, json.dumps(timing_report(result, usage.as_dict(), cfg.preset), indent=2) + "\n")
     print(f"optimize {name}: {result.iterations} iterations ({cfg.preset}, {result.backend}) in {usage.wall_s:.0f} s, "
           f"{result.num_init} -> {result.params.num} surfels -> {args.out_dir}")
     return 0

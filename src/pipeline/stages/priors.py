@@ -16,7 +16,7 @@ from pathlib import Path
 from pipeline.atomic import atomic_dir
 from pipeline.config import LossConfig, PriorsConfig, load_params, section
 from pipeline.data.dtu import load_scene
-from pipeline.data.scene import check_scene
+from pipeline.data.scene import check_made_from, check_scene
 from pipeline.errors import ConfigError
 from pipeline.init.io import load_init_depths
 from pipeline.measure import peak_rss_mb
@@ -44,20 +44,23 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
     the facts written to priors.json (no timings: identical inputs give identical bytes)."""
     out_dir = Path(out_dir)
     normals_backend, features_backend = effective_backends(cfg, loss)
-    scene = load_scene(scene_dir, view_ids=None)
-    check_scene(scene)
-    # Everything that can fail on bad input is checked before any output is written.
-    depths = None
-    if normals_backend == "default":
-        if init_dir is None:
-            raise ConfigError("priors.normals = default needs the init stage's depth maps: pass --init-dir "
-                              "(or set priors.normals to dsine or none)")
-        depths = load_init_depths(init_dir, scene, needed_by="priors.normals = default")
-    dsine = load_onnx(cfg.dsine_model, DSINE_CONTRACT) if normals_backend == "dsine" else None
-    vis = load_onnx(cfg.vismvsnet_model, VISMVSNET_FEATURES_CONTRACT) if features_backend == "vismvsnet" else None
-    per_view = {}
-
-    with atomic_dir(out_dir) as tmp:
+    models = (cfg.dsine_model if normals_backend == "dsine" else None,
+              cfg.vismvsnet_model if features_backend == "vismvsnet" else None)
+    with atomic_dir(out_dir, "priors", inputs=(scene_dir, init_dir, *models)) as tmp:
+        scene = load_scene(scene_dir, view_ids=None)
+        check_scene(scene)
+        # Everything that can fail on bad input is checked before any output is written.
+        if init_dir is not None:
+            check_made_from(scene, init_dir, "init.json", "init")
+        depths = None
+        if normals_backend == "default":
+            if init_dir is None:
+                raise ConfigError("priors.normals = default needs the init stage's depth maps: pass --init-dir "
+                                  "(or set priors.normals to dsine or none)")
+            depths = load_init_depths(init_dir, scene, needed_by="priors.normals = default")
+        dsine = load_onnx(cfg.dsine_model, DSINE_CONTRACT) if normals_backend == "dsine" else None
+        vis = load_onnx(cfg.vismvsnet_model, VISMVSNET_FEATURES_CONTRACT) if features_backend == "vismvsnet" else None
+        per_view = {}
         for i, v in enumerate(scene.view_ids):
             where = f"{scene.source} view {v}"
             facts = {}
@@ -85,6 +88,7 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
             per_view[str(v)] = facts
         info = {
             "scene": str(scene_dir),
+            "scene_fingerprint": scene.fingerprint(),
             "init_dir": str(init_dir) if init_dir else None,
             "views": scene.view_ids,
             "size": [scene.width, scene.height],

@@ -24,6 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    atomic.check_output_file(args.out, inputs=(args.train_timing,))
     params = load_params(args.params)
     entry = scene_entry(params, args.name)
     opt = section(OptimizeConfig, "optimize", params)

@@ -9,6 +9,7 @@ import json
 import sys
 import time
 
+from pipeline import atomic
 from pipeline.config import MeshConfig, load_params, section
 from pipeline.meshing import tsdf
 from pipeline.measure import peak_rss_mb
@@ -28,6 +29,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    atomic.check_output_file(args.out)
     t0 = time.perf_counter()
     cfg = section(MeshConfig, "mesh", load_params(args.params),
                   {"voxel_norm": args.voxel_norm, "trunc_norm": args.trunc_norm,

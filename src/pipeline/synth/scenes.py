@@ -5,8 +5,6 @@ in the DTU world frame (mm) of the camera source by :func:`table_frame`.
 """
 from __future__ import annotations
 
-import shutil
-import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,6 +13,7 @@ from typing import Callable
 import numpy as np
 
 from pipeline import geometry
+from pipeline.atomic import atomic_dir
 from pipeline.data import dtu
 from pipeline.synth import shapes
 from pipeline.synth.render import Renderer
@@ -161,31 +160,27 @@ def write_synth_scene(
     t0 = time.perf_counter()
     if width <= 0 or height <= 0:
         raise ValueError(f"image size must be positive, got {width}x{height}")
-    cams = dtu.load_cameras(cameras_dir)
-    src_w, src_h = dtu.stored_image_size(cameras_dir)  # the size the cameras are for
-    scene = build_scene(name, seed, cams)
-    renderer = Renderer(scene)
-    K = {v: geometry.scale_intrinsics(cams.K[v], width / src_w, height / src_h) for v in cams.ids}
-    images, masks = {}, {}
-    for v in cams.ids:
-        hits = renderer.cast(K[v], cams.world_to_cam[v], width, height)
-        images[v] = renderer.shade(hits)
-        masks[v] = renderer.object_mask(hits)
-    gain = 1.0
-    if name in DARK_MASK_MEAN:
-        grey = [np.mean(images[v][masks[v]]) for v in cams.ids if masks[v].any()]
-        gain = DARK_MASK_MEAN[name] / float(np.mean(grey))
-        images = {v: np.clip(img * gain, 0.0, 1.0) for v, img in images.items()}
-    say(f"[synth] {name}: rendered {len(cams.ids)} views at {width}x{height} ({time.perf_counter() - t0:.1f} s)")
-    v_local, tris = visible_gt_mesh(scene, renderer, cams, (src_w, src_h))
-    v_world = scene.to_world(v_local)
-
-    parent = Path(out_dir).resolve().parent
-    parent.mkdir(parents=True, exist_ok=True)
-    gt_tmp = Path(tempfile.mkdtemp(prefix=".gt.", dir=parent))
-    try:
+    with atomic_dir(out_dir, "synth", inputs=(cameras_dir,)) as tmp:
+        cams = dtu.load_cameras(cameras_dir)
+        src_w, src_h = dtu.stored_image_size(cameras_dir)  # the size the cameras are for
+        scene = build_scene(name, seed, cams)
+        renderer = Renderer(scene)
+        K = {v: geometry.scale_intrinsics(cams.K[v], width / src_w, height / src_h) for v in cams.ids}
+        images, masks = {}, {}
+        for v in cams.ids:
+            hits = renderer.cast(K[v], cams.world_to_cam[v], width, height)
+            images[v] = renderer.shade(hits)
+            masks[v] = renderer.object_mask(hits)
+        gain = 1.0
+        if name in DARK_MASK_MEAN:
+            grey = [np.mean(images[v][masks[v]]) for v in cams.ids if masks[v].any()]
+            gain = DARK_MASK_MEAN[name] / float(np.mean(grey))
+            images = {v: np.clip(img * gain, 0.0, 1.0) for v, img in images.items()}
+        say(f"[synth] {name}: rendered {len(cams.ids)} views at {width}x{height} ({time.perf_counter() - t0:.1f} s)")
+        v_local, tris = visible_gt_mesh(scene, renderer, cams, (src_w, src_h))
+        v_world = scene.to_world(v_local)
         # Every GT triangle is seen, so the ObsMask is the GT points' voxels (the default).
-        write_ground_truth(gt_tmp, scene.scan_id, v_world, tris, scene.ground_plane(), seed=seed)
+        write_ground_truth(tmp / "gt", scene.scan_id, v_world, tris, scene.ground_plane(), seed=seed)
         meta = {
             "name": name,
             "scan_id": scene.scan_id,
@@ -201,9 +196,6 @@ def write_synth_scene(
         }
         if name in SUGGESTED_VIEWS:
             meta["suggested_views"] = SUGGESTED_VIEWS[name]
-        dtu.write_scene(out_dir, images, K, cams.world_to_cam, cams.norm_to_world, masks=masks, meta=meta,
-                        extra={"gt": gt_tmp})
-    finally:
-        shutil.rmtree(gt_tmp, ignore_errors=True)
+        dtu.write_scene_files(tmp, images, K, cams.world_to_cam, cams.norm_to_world, masks=masks, meta=meta)
     say(f"[synth] {name}: wrote {out_dir} ({time.perf_counter() - t0:.1f} s)")
     return Path(out_dir)
