@@ -58,16 +58,20 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
                   "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
                   "mesh@scan24", "evaluate@scan24", "variant@synth_relief-baseline_2dgs",
-                  "variant@synth_relief-no_priors", "table1", "table2"):
+                  "variant@synth_relief-no_priors", "limit@synth_relief", "table1", "table2"):
         assert f"Running stage '{stage}'" in first
     table2 = (tiny_repo / "reports/table2.csv").read_text().splitlines()
-    assert [line.split(",")[0] for line in table2] == ["row", "MVS + TSDF (classical)", "baseline_2dgs", "no_priors",
+    assert [line.split(",")[0] for line in table2] == ["row", "3-view limit (GT seen by the input views)",
+                                                        "MVS + TSDF (classical)", "baseline_2dgs", "no_priors",
                                                         "full method"]
     rows = list(csv.DictReader(table2))
     means = {r["row"]: float(r["mean"]) for r in rows}
     assert all(0 < float(r["synth_relief_covered"]) <= 1 for r in rows), rows
     # Even at this tiny setting the full method (dense init, priors) must beat plain 2DGS.
     assert means["full method"] < means["baseline_2dgs"], means
+    # The 3-view limit invents nothing: its accuracy is near zero and no row's is below it.
+    accuracy = {r["row"]: float(r["synth_relief_accuracy"]) for r in rows}
+    assert accuracy["3-view limit (GT seen by the input views)"] == min(accuracy.values()) < 0.2, accuracy
     cell = json.loads((tiny_repo / "reports/variants/baseline_2dgs/synth_relief.json").read_text())
     assert cell["chamfer"]["overall_mm"] > 0 and cell["variant"]["init"] == "sfm"
     assert cell["train"]["iterations"] == 12 and cell["timing"]["wall_s"] > 0

@@ -239,3 +239,31 @@ def test_cli_list_and_bad_arguments(capsys, tmp_path, bundled_scan):
     assert gcgs(["synth", "synth_thin"]) == 1
     assert "--out" in capsys.readouterr().err
     assert not (tmp_path / "x").exists()
+
+
+def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundled_scan):
+    """The limit mesh keeps exactly the GT triangles the given views see: all 49 views give the
+    whole GT mesh back, three give a strict subset lying on it, and more views never see less."""
+    from pipeline.config import DataConfig, EvaluateConfig
+    from pipeline.data.prepare import prepare_scene
+    from pipeline.data.scene import SceneError
+    from pipeline.evaluation import gt
+    from pipeline.evaluation.limit import limit_mesh, mesh_area_mm2, run_limit
+    from pipeline.meshing.raycast import distance_to_mesh
+
+    V_gt, F_gt = gt.read_mesh(relief / "gt" / "mesh.ply")
+    V_all, F_all = limit_mesh(relief, dtu.load_cameras(relief).ids)
+    assert len(F_all) == len(F_gt)
+    np.testing.assert_allclose(mesh_area_mm2(V_all, F_all), mesh_area_mm2(V_gt, F_gt), rtol=1e-5)
+    V3, F3 = limit_mesh(relief, [23, 24, 33])
+    V4, F4 = limit_mesh(relief, [23, 24, 33, 0])
+    assert 0 < mesh_area_mm2(V3, F3) < mesh_area_mm2(V4, F4) < mesh_area_mm2(V_gt, F_gt)
+    assert distance_to_mesh(V3, V_gt, F_gt).max() < 1e-3
+    scene = tmp_path / "scene"
+    prepare_scene(relief, scene, DataConfig(views=[23, 24, 33], width=W, height=H))
+    report = run_limit(relief, scene, tmp_path / "limit", EvaluateConfig(), [23, 24, 33])
+    c = report["chamfer"]
+    assert c["accuracy_mm"] < 0.2 < c["completeness_mm"] and 0 < report["gt_area_seen_fraction"] < 1
+    assert gt.read_mesh(tmp_path / "limit" / "mesh.ply")[1].shape == F3.shape
+    with pytest.raises(SceneError, match="not a synthetic scene"):
+        limit_mesh(bundled_scan, [23, 24, 33])

@@ -52,27 +52,36 @@ def _write(path, data):
 
 
 def test_table2_rows_components_and_mean(tmp_path):
-    from pipeline.evaluation.table2 import FULL, MVS_TSDF, build_table2, csv_text, markdown
+    from pipeline.evaluation.table2 import FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown
 
     scenes = ["a", "b"]
-    def counts(used):
-        return {"counts": {"completeness_used": used, "gt_above_plane": 200}}
+    def chamfer(overall, acc, used):
+        return {"overall_mm": overall, "accuracy_mm": acc, "completeness_mm": 2 * overall - acc,
+                "counts": {"completeness_used": used, "gt_above_plane": 200}}
 
-    for s, (mvs, plain, full) in {"a": (3.0, 5.0, 1.0), "b": (2.0, 7.0, 2.0)}.items():
-        _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": {"overall_mm": mvs, **counts(50)}}})
-        _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": {"overall_mm": plain, **counts(100)}})
-        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {"overall_mm": full, **counts(150)}})
+    for s, (lim, mvs, plain, full) in {"a": (0.5, 3.0, 5.0, 1.0), "b": (1.5, 2.0, 7.0, 2.0)}.items():
+        _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(lim, 0.0, 120)})
+        _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": chamfer(mvs, 0.5, 50)}})
+        _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": chamfer(plain, 2.0, 100)})
+        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": chamfer(full, 0.25, 150)})
     ablation = AblationConfig(**BASE["ablation"])
     rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
-                        tmp_path / "baseline")
-    assert [r["row"] for r in rows] == [MVS_TSDF, "plain", FULL]
-    assert [r["mean"] for r in rows] == [2.5, 6.0, 1.5]
-    assert (rows[1]["dense_init"], rows[1]["gcf"], rows[1]["nor"]) == (False, False, False)
-    assert (rows[2]["dense_init"], rows[2]["gcf"], rows[2]["nor"]) == (True, True, True)
-    assert [r["covered"] for r in rows] == [{"a": 0.25, "b": 0.25}, {"a": 0.5, "b": 0.5}, {"a": 0.75, "b": 0.75}]
-    assert csv_text(rows, scenes).splitlines()[2] == "plain,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000"
+                        tmp_path / "baseline", tmp_path / "limit")
+    assert [r["row"] for r in rows] == [LIMIT, MVS_TSDF, "plain", FULL]
+    assert [r["mean"] for r in rows] == [1.0, 2.5, 6.0, 1.5]
+    assert rows[0]["accuracy"] == {"a": 0.0, "b": 0.0, "mean": 0.0}
+    assert rows[3]["completeness"] == {"a": 1.75, "b": 3.75, "mean": 2.75}
+    assert (rows[0]["dense_init"], rows[1]["gcf"]) == (None, None)
+    assert (rows[2]["dense_init"], rows[2]["gcf"], rows[2]["nor"]) == (False, False, False)
+    assert (rows[3]["dense_init"], rows[3]["gcf"], rows[3]["nor"]) == (True, True, True)
+    assert [r["covered"] for r in rows][1:] == [{"a": 0.25, "b": 0.25}, {"a": 0.5, "b": 0.5}, {"a": 0.75, "b": 0.75}]
+    assert csv_text(rows, scenes).splitlines()[3] == ("plain,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000,"
+                                                     "2.0000,2.0000,2.0000,8.0000,12.0000,10.0000")
     md = markdown(rows, scenes, "abc")
+    # The limit is the yardstick, not a row to win: the best method row is in bold.
     assert "| full method | yes | yes | yes | 1.000 | 2.000 | **1.500** |" in md
+    assert f"| {LIMIT} | — | — | — | 0.500 | 1.500 | 1.000 |" in md
+    assert "| full method | 0.250 / 1.750 | 0.250 / 3.750 | 0.250 / 2.750 |" in md
     assert f"| {MVS_TSDF} | 0.25 | 0.25 |" in md
 
 
@@ -80,13 +89,17 @@ def test_table2_names_a_missing_or_bad_report(tmp_path):
     from pipeline.evaluation.table2 import build_table2
 
     ablation = AblationConfig(**BASE["ablation"])
-    args = (BASE, ["a"], ablation.run, ablation.variants, tmp_path / "m", tmp_path / "v", tmp_path / "b")
+    args = (BASE, ["a"], ablation.run, ablation.variants, tmp_path / "m", tmp_path / "v", tmp_path / "b",
+            tmp_path / "l")
+    _write(tmp_path / "l" / "a.json", {"chamfer": {"overall_mm": 1.0, "accuracy_mm": 0.0, "completeness_mm": 2.0,
+                                                   "counts": {"completeness_used": 1, "gt_above_plane": 2}}})
     with pytest.raises(InputError, match=r"b/a\.json: no report \(file not found; run `dvc repro` first\)"):
         build_table2(*args)
     _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": float("nan")}}})
     with pytest.raises(InputError, match="must be a finite number"):
         build_table2(*args)
-    _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": 1.0}}})  # no counts
+    _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": 1.0, "accuracy_mm": 0.5,
+                                                               "completeness_mm": 1.5}}})  # no counts
     with pytest.raises(InputError, match="b/a.json: missing `completeness_used`"):
         build_table2(*args)
 

@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "optimize": ("pipeline.stages.optimize", "train 2D Gaussian surfels with the GCGS losses"),
     "mesh": ("pipeline.stages.mesh", "TSDF mesh (mm) of depth rendered from trained surfels"),
     "score": ("pipeline.stages.score", "per-scene metrics of the method (Chamfer or held-out views, cost)"),
+    "limit": ("pipeline.stages.limit", "the 3-view limit of a synthetic scene: its GT seen by the input views, scored"),
     "table2": ("pipeline.stages.table2", "Table II: the ablation on the synthetic suite (Markdown + CSV)"),
     "variant": ("pipeline.stages.variant", "one ablation cell: a variant trained, meshed and scored on one scene"),
     "bench-eval": ("pipeline.benchmarks.evaluation", "benchmark the Chamfer evaluation"),

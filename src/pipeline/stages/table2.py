@@ -14,6 +14,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--metrics-dir", default="reports/metrics", help="the full method's SCENE.json")
     p.add_argument("--variants-dir", default="reports/variants", help="VARIANT/SCENE.json of the variants")
     p.add_argument("--baseline-dir", default="reports/baseline", help="the classical baseline's SCENE.json")
+    p.add_argument("--limit-dir", default="reports/limit", help="the 3-view limit's SCENE.json")
     p.add_argument("--out-md", default="reports/table2.md")
     p.add_argument("--out-csv", default="reports/table2.csv")
     p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
