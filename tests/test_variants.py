@@ -1,12 +1,15 @@
 """Ablation variants: a variant's partial sections merge over the main params, are
 validated like params values, and bad definitions fail with a message naming them."""
 import json
+from pathlib import Path
 
 import pytest
 
 from pipeline.errors import InputError
 from pipeline.config import AblationConfig, ConfigError, LossConfig, OptimizeConfig, merged_section, section
 from pipeline.evaluation.variants import variant_configs
+
+REPO = Path(__file__).resolve().parents[1]
 
 BASE = {
     "optimize": {"iterations": 500, "densify": {"every": 100, "max_surfels": 1000}},
@@ -52,7 +55,7 @@ def _write(path, data):
 
 
 def test_table2_rows_components_and_mean(tmp_path):
-    from pipeline.evaluation.table2 import FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown
+    from pipeline.evaluation.table2 import FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown, read_published_ablation
 
     scenes = ["a", "b"]
     def chamfer(overall, acc, used):
@@ -83,6 +86,21 @@ def test_table2_rows_components_and_mean(tmp_path):
     assert f"| {LIMIT} | — | — | — | 0.500 | 1.500 | 1.000 |" in md
     assert "| full method | 0.250 / 1.750 | 0.250 / 3.750 | 0.250 / 2.750 |" in md
     assert f"| {MVS_TSDF} | 0.25 | 0.25 |" in md
+    assert "published" not in md  # no published figure unless given, and then apart:
+    published = read_published_ablation(REPO / "data" / "published" / "gcgs_table2_ablation.csv")
+    assert published[-1] == {"dense_init": True, "gcf": True, "nor": True, "mean_mm": 0.95}
+    md = markdown(rows, scenes, "abc", published)
+    tail = md.split("## The paper's Table II (published, not measured here)")[1]
+    assert "| yes | yes | yes | 0.95 |" in tail and "full method" not in tail
+
+
+def test_published_table2_bad_rows_are_named(tmp_path):
+    from pipeline.evaluation.table2 import read_published_ablation
+
+    bad = tmp_path / "t2.csv"
+    bad.write_text("# comment\nmast3r_init,l_gcf,l_nor,mean_cd_mm\nmaybe,no,no,2.36\n")
+    with pytest.raises(InputError, match="t2.csv: row 1: need mast3r_init"):
+        read_published_ablation(bad)
 
 
 def test_table2_names_a_missing_or_bad_report(tmp_path):
