@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from pipeline.config import AblationConfig, load_params, section
-from pipeline.evaluation.speed_accuracy import collect_cells, write_report
+from pipeline.reports.speed_accuracy import collect_cells, write_report
 from pipeline.measure import provenance
 
 REPORTS = Path("reports/speed_accuracy")

@@ -13,7 +13,7 @@ from pipeline.init.io import DepthMap, depth_path, write_depth
 def write_relief_scene(root: Path, camera_source: Path, views: tuple[int, ...], width: int, height: int):
     """Write ``root/scene`` (DTU layout) and ``root/init`` (depth/*.npz); returns
     ``(scene_dir, init_dir, relief)`` where ``relief`` holds the ground truth."""
-    from pipeline.priors.raycast import textured_relief_scene
+    from pipeline.benchmarks.relief_scene import textured_relief_scene
 
     scan = dtu.load_scene(camera_source, view_ids=list(views), resolution=(width, height), with_masks=False)
     sc = textured_relief_scene(scan.K, scan.world_to_cam, width, height, scan.norm_to_world[:3, 3])

@@ -3,12 +3,14 @@ edits, the densification strategy, the rendering losses (against slow references
 gradients checked)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 import pytest
 import torch
 
+from pipeline.config import ConfigError, DensifyConfig
 from pipeline.optimize import ops, terms
 from pipeline.optimize.strategy import DensifyStrategy, screen_grad_ndc
 from pipeline.optimize.surfels import (
@@ -18,9 +20,9 @@ from pipeline.optimize.surfels import (
     knn_scales,
     ply_attribute_names,
     read_surfel_ply,
-    rotmat_to_quat,
     write_surfel_ply,
 )
+from pipeline.geometry import rotmat_to_quat
 from pipeline.rasterizer.project import quat_to_rotmat
 
 
@@ -126,7 +128,8 @@ def test_strategy_clones_small_splits_large_and_respects_budget():
         params.log_scales[:3] = math.log(0.001)  # small -> clone
         params.log_scales[3:] = math.log(0.05)  # large -> split
     opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
-    st = DensifyStrategy(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0, max_surfels=100)
+    st = DensifyStrategy(DensifyConfig(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0,
+                                       max_surfels=100))
     st.initialize(params.num)
     grad = torch.zeros(6, 2)
     grad[[0, 3], 0] = 1e-3  # NDC: 1e-3 * 400 / 2 = 0.2 > threshold
@@ -138,10 +141,10 @@ def test_strategy_clones_small_splits_large_and_respects_budget():
     assert torch.allclose(s[-2:], torch.full((2, 2), 0.05 / 1.6, dtype=s.dtype))
     assert len(st.state.grad2d) == params.num and float(st.state.grad2d.sum()) == 0.0
     # Budget: no room -> nothing added.
-    st.max_surfels = params.num
+    st.cfg = dataclasses.replace(st.cfg, max_surfels=params.num)
     st.step_post_backward(params, torch.full((params.num, 2), 1.0), torch.ones(params.num, dtype=torch.int32), 400, 300)
     done = st.step_post_update(params, opt, 20, torch.Generator().manual_seed(0))
-    assert done["cloned"] + done["split"] == 0 and params.num <= st.max_surfels
+    assert done["cloned"] + done["split"] == 0 and params.num <= st.cfg.max_surfels
 
 
 def test_strategy_prunes_transparent_but_never_everything():
@@ -149,7 +152,7 @@ def test_strategy_prunes_transparent_but_never_everything():
     opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
     with torch.no_grad():
         params.opacity_logits[:] = -10.0
-    st = DensifyStrategy(start_iter=0, stop_iter=100, every=10, reset_every=0)
+    st = DensifyStrategy(DensifyConfig(start_iter=0, stop_iter=100, every=10, reset_every=0))
     st.initialize(5)
     done = st.step_post_update(params, opt, 10, torch.Generator())
     assert done["pruned"] == 4 and params.num == 1
@@ -207,3 +210,31 @@ def test_mask_loss():
     alpha = torch.tensor([[0.2, 0.9]], requires_grad=True)
     mask = torch.tensor([[False, True]])
     assert float(terms.mask_loss(alpha, mask)) == pytest.approx((0.2 + 0.1) / 2)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ({"every": 0}, "every must be >= 1"),
+    ({"start_iter": 50, "stop_iter": 10}, "start_iter <= stop_iter"),
+    ({"max_surfels": 0}, "max_surfels must be >= 1"),
+    ({"split_factor": 1.0}, "split_factor must be > 1"),
+    ({"reset_value": 0.0}, "reset_value must be in"),
+    ({"grad_threshold": -1e-4}, "grad_threshold must be >= 0"),
+])
+def test_densify_config_refuses_values_that_break_the_strategy(bad, match):
+    with pytest.raises(ConfigError, match=match):
+        DensifyConfig(**bad)
+
+
+def test_split_factor_sets_the_children_scale():
+    """The one densification config reaches the strategy: a split child's scale is the
+    parent's divided by ``split_factor``."""
+    from pipeline.optimize.strategy import DensifyState
+
+    rng = np.random.default_rng(0)
+    params = init_params(rng.normal(size=(4, 3)), None, np.full((4, 3), 0.5), 0, 0.5, rng)
+    opt = ops.make_optimizer(params, {k: 1e-3 for k in params.tensors()})
+    parent = torch.exp(params.log_scales[1].detach()).clone()
+    state = DensifyState.zeros(4)
+    ops.split(params, opt, state, torch.tensor([False, True, False, False]), 2.5, torch.Generator().manual_seed(0))
+    assert params.num == 5 and len(state.count) == 5
+    torch.testing.assert_close(torch.exp(params.log_scales[-2:].detach()), (parent / 2.5).expand(2, 2))

@@ -16,7 +16,7 @@ from pipeline import cli
 from pipeline.atomic import MARKER, atomic_dir
 from pipeline.data import dtu
 from pipeline.init.io import PointCloud, write_ply
-from pipeline.optimize.run import default_side_paths
+from pipeline.runs.optimize import default_side_paths
 from pipeline.optimize.surfels import init_params, write_surfel_ply
 from test_atomic import tree_digest
 
@@ -205,7 +205,7 @@ def test_an_init_cloud_too_small_for_a_surface_is_one_line(tmp_path, capsys, sce
 def test_an_output_path_that_is_a_file_fails_before_training(tmp_path, capsys, scene_dir, monkeypatch):
     (tmp_path / "surfels").write_text("not a folder")
     (tmp_path / "timing").mkdir()
-    monkeypatch.setattr("pipeline.optimize.run.train", lambda *a, **k: pytest.fail("trained before the check"))
+    monkeypatch.setattr("pipeline.runs.optimize.train", lambda *a, **k: pytest.fail("trained before the check"))
     for out, metrics, why in ((tmp_path / "surfels", tmp_path / "t.json", "is not a folder"),
                               (tmp_path / "s2", tmp_path / "timing", "is a folder")):
         rc, err = _gcgs(capsys, "optimize", "--scene", scene_dir, "--init-dir", tmp_path / "init", "--priors-dir",

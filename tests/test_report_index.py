@@ -11,8 +11,8 @@ from pipeline.cli import main
 from pipeline.data import dtu
 from pipeline.errors import MissingInputError
 from pipeline.evaluation import gt
-from pipeline.evaluation.renders import scene_panels, write_png
-from pipeline.evaluation.report_index import index_markdown
+from pipeline.reports.renders import scene_panels, write_png
+from pipeline.reports.index import index_markdown
 from pipeline.optimize.surfels import init_params, write_surfel_ply
 
 LABEL_ROWS = 16  # the panels' text labels

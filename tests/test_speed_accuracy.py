@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.evaluation.speed_accuracy import collect_cells, pareto_front, write_report
+from pipeline.reports.speed_accuracy import collect_cells, pareto_front, write_report
 
 
 def _dominated(i, t, e):

@@ -1,4 +1,4 @@
-"""Table I (``gcgs table1``, :mod:`pipeline.evaluation.tables`): measured cells come from the
+"""Table I (``gcgs table1``, :mod:`pipeline.reports.table1`): measured cells come from the
 per-scene reports, published ones from the data file and never the other way round; bad
 reports are named; the written CSV and Markdown parse; a DTU scan added to params fills
 its column with no code change."""
@@ -15,7 +15,7 @@ import yaml
 
 from pipeline.cli import main
 from pipeline.errors import InputError, MissingInputError
-from pipeline.evaluation import tables
+from pipeline.reports import table1 as tables
 
 REPO = Path(__file__).resolve().parents[1]
 PUBLISHED = REPO / "data" / "published" / "dtu_3view_table1.csv"

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.errors import InputError
 from pipeline.config import AblationConfig, ConfigError, LossConfig, OptimizeConfig, merged_section, section
-from pipeline.evaluation.variants import variant_configs
+from pipeline.runs.variant import variant_configs
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -55,7 +55,7 @@ def _write(path, data):
 
 
 def test_table2_rows_components_and_mean(tmp_path):
-    from pipeline.evaluation.table2 import FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown, read_published_ablation
+    from pipeline.reports.table2 import FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown, read_published_ablation
 
     scenes = ["a", "b"]
     def chamfer(overall, acc, used):
@@ -95,7 +95,7 @@ def test_table2_rows_components_and_mean(tmp_path):
 
 
 def test_published_table2_bad_rows_are_named(tmp_path):
-    from pipeline.evaluation.table2 import read_published_ablation
+    from pipeline.reports.table2 import read_published_ablation
 
     bad = tmp_path / "t2.csv"
     bad.write_text("# comment\nmast3r_init,l_gcf,l_nor,mean_cd_mm\nmaybe,no,no,2.36\n")
@@ -104,7 +104,7 @@ def test_published_table2_bad_rows_are_named(tmp_path):
 
 
 def test_table2_names_a_missing_or_bad_report(tmp_path):
-    from pipeline.evaluation.table2 import build_table2
+    from pipeline.reports.table2 import build_table2
 
     ablation = AblationConfig(**BASE["ablation"])
     args = (BASE, ["a"], ablation.run, ablation.variants, tmp_path / "m", tmp_path / "v", tmp_path / "b",

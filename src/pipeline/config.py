@@ -273,19 +273,43 @@ class LearningRates:
 
 @dataclass
 class DensifyConfig:
-    """Adaptive density control (pipeline.optimize.strategy); iterations are 0-based steps."""
+    """Adaptive density control: the configuration of :class:`pipeline.optimize.strategy.
+    DensifyStrategy` (its only one). Iterations are 0-based steps; sizes are relative to
+    ``optimize.scene_extent``."""
 
     start_iter: int = 500
     stop_iter: int = 15000
     every: int = 100
-    grad_threshold: float = 2e-4  # mean screen-space gradient, normalised device units
+    grad_threshold: float = 2e-4  # mean screen-space gradient, normalised device units (2DGS/3DGS)
     percent_dense: float = 0.01  # clone if max scale <= this x extent, else split
+    split_factor: float = 1.6  # a split child's scale = parent / 1.6 (2DGS: 0.8 * 2)
     prune_opacity: float = 0.05
     reset_every: int = 3000  # 0: never
-    reset_value: float = 0.01
+    reset_value: float = 0.01  # opacity reset to min(opacity, this)
     max_world_scale: float = 0.1  # x extent, pruned after the first reset
     max_screen_fraction: float = 0.0  # x max(W, H), pruned after the first reset (0: off)
     max_surfels: int = 300000  # budget
+
+    def __post_init__(self) -> None:
+        where = "optimize.densify"
+        if self.every < 1:
+            raise ConfigError(f"{where}.every must be >= 1, got {self.every}")
+        if not 0 <= self.start_iter <= self.stop_iter:
+            raise ConfigError(f"{where}: need 0 <= start_iter <= stop_iter, got {self.start_iter}, {self.stop_iter}")
+        if self.reset_every < 0:
+            raise ConfigError(f"{where}.reset_every must be >= 0 (0: never), got {self.reset_every}")
+        if self.max_surfels < 1:
+            raise ConfigError(f"{where}.max_surfels must be >= 1, got {self.max_surfels}")
+        if self.split_factor <= 1:
+            raise ConfigError(f"{where}.split_factor must be > 1 (children smaller than the parent), "
+                              f"got {self.split_factor}")
+        if not 0 < self.reset_value < 1:
+            raise ConfigError(f"{where}.reset_value must be in (0, 1), got {self.reset_value}")
+        if not 0 <= self.prune_opacity < 1:
+            raise ConfigError(f"{where}.prune_opacity must be in [0, 1) (0: no pruning), got {self.prune_opacity}")
+        for key in ("grad_threshold", "percent_dense", "max_world_scale", "max_screen_fraction"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"{where}.{key} must be >= 0, got {getattr(self, key)}")
 
 
 @dataclass

@@ -116,3 +116,33 @@ def rigid_inverse(T: np.ndarray) -> np.ndarray:
     out[:3, :3] = T[:3, :3].T
     out[:3, 3] = -T[:3, :3].T @ T[:3, 3]
     return out
+
+
+def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
+    """``(N, 3, 3)`` rotations -> ``(N, 4)`` unit wxyz quaternions (Shepperd's method)."""
+    R = np.asarray(R, np.float64)
+    tr = np.trace(R, axis1=1, axis2=2)
+    cands = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
+    k = np.argmax(cands, 1)
+    q = np.empty((len(R), 4))
+    for case in range(4):
+        m = k == case
+        r = R[m]
+        if case == 0:
+            s = np.sqrt(1.0 + tr[m]) * 2
+            q[m] = np.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
+                             (r[:, 1, 0] - r[:, 0, 1]) / s], 1)
+        elif case == 1:
+            s = np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]) * 2
+            q[m] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s,
+                             (r[:, 0, 2] + r[:, 2, 0]) / s], 1)
+        elif case == 2:
+            s = np.sqrt(1.0 + r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2]) * 2
+            q[m] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s,
+                             (r[:, 1, 2] + r[:, 2, 1]) / s], 1)
+        else:
+            s = np.sqrt(1.0 + r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1]) * 2
+            q[m] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s,
+                             (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], 1)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # one sign per rotation: w >= 0
+    return q / np.linalg.norm(q, axis=1, keepdims=True)

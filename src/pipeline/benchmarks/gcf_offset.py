@@ -20,7 +20,7 @@ from pipeline import atomic
 from pipeline.data import dtu
 from pipeline.losses import gcf_loss
 from pipeline.priors.features import default_features, feature_image_size
-from pipeline.priors.raycast import textured_relief_scene
+from pipeline.benchmarks.relief_scene import textured_relief_scene
 
 
 def offset_curve(images: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, depth_ref_mm: np.ndarray,

@@ -31,7 +31,7 @@ from pipeline.measure import measure
 from pipeline.rasterizer import Surfels, rasterize
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu as cpu_backend
-from pipeline.rasterizer.scenes import dtu_camera, object_surfels
+from pipeline.benchmarks.surfel_scenes import dtu_camera, object_surfels
 
 SIZES = [(200, 150), (400, 300), (800, 600)]
 COUNTS = [10_000, 50_000, 200_000]

@@ -7,18 +7,14 @@ runs in the world frame in mm with the scene's world-to-camera transforms.
 """
 from __future__ import annotations
 
-import json
-from pathlib import Path
-
 import numpy as np
 import torch
 
-from pipeline import atomic, geometry
+from pipeline import geometry
 from pipeline.config import MeshConfig
-from pipeline.data.dtu import load_scene
-from pipeline.data.scene import Scene, check_made_from
+from pipeline.data.scene import Scene
 from pipeline.meshing import tsdf
-from pipeline.optimize.surfels import SurfelParams, read_surfel_ply
+from pipeline.optimize.surfels import SurfelParams
 from pipeline.rasterizer import Camera, rasterize
 
 
@@ -111,17 +107,3 @@ def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backe
             "depth_pixels": int((ds > 0).sum()), "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
             **facts, "vertices": len(mesh.vertices_mm)}
     return mesh, info
-
-
-def mesh_surfels_dir(scene_dir: str | Path, surfels_dir: str | Path, out_dir: str | Path, cfg: MeshConfig,
-                     backend: str = "cpu") -> dict:
-    """Files to files: ``surfels_dir/surfels.ply`` of the scene -> ``out_dir/mesh.ply`` and
-    ``mesh.json`` (the facts, returned), the folder written atomically."""
-    with atomic.atomic_dir(Path(out_dir), "mesh", inputs=(scene_dir, surfels_dir)) as tmp:
-        scene = load_scene(scene_dir, view_ids=None)
-        check_made_from(scene, surfels_dir, "train.json", "optimize")
-        surfels = read_surfel_ply(Path(surfels_dir) / "surfels.ply", scene.norm_to_world)
-        mesh, info = mesh_from_surfels(surfels, scene, cfg, backend)
-        tsdf.write_mesh(tmp / "mesh.ply", mesh)
-        (tmp / "mesh.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
-    return info

@@ -8,10 +8,15 @@ one's momentum and the optimizer never sees a tensor it does not know.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import TYPE_CHECKING
 
 import torch
 
 from pipeline.optimize.surfels import PARAM_NAMES, SurfelParams
+from pipeline.rasterizer.project import quat_to_rotmat
+
+if TYPE_CHECKING:
+    from pipeline.optimize.strategy import DensifyState
 
 
 def make_optimizer(params: SurfelParams, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
@@ -55,3 +60,37 @@ def set_values(params: SurfelParams, optimizer: torch.optim.Optimizer, name: str
     """Overwrite one parameter (e.g. the opacity reset); its moments restart at zero."""
     _swap(params, optimizer, lambda n, p: values.to(p) if n == name else p,
           lambda n, k, v: torch.zeros_like(v) if (n == name and reset_state) else v)
+
+
+def duplicate(params: SurfelParams, optimizer: torch.optim.Optimizer, state: DensifyState,
+              mask: torch.Tensor) -> None:
+    """Append a copy of each surfel where ``mask`` (moments at zero, statistics at zero)."""
+    with torch.no_grad():
+        new = {k: v[mask].detach().clone() for k, v in params.tensors().items()}
+    append(params, optimizer, new)
+    state.extend(int(mask.sum()))
+
+
+def split(params: SurfelParams, optimizer: torch.optim.Optimizer, state: DensifyState, mask: torch.Tensor,
+          factor: float, generator: torch.Generator) -> None:
+    """Replace each surfel where ``mask`` by two children, centres drawn from its 2D Gaussian
+    in its own plane, scales divided by ``factor`` (2DGS)."""
+    n = int(mask.sum())
+    with torch.no_grad():
+        src = {k: v[mask].detach() for k, v in params.tensors().items()}
+        s = torch.exp(src["log_scales"])
+        R = quat_to_rotmat(src["quats"])
+        children = []
+        for _ in range(2):
+            uv = torch.randn(s.shape, generator=generator, dtype=torch.float64).to(s) * s
+            offset = (R[:, :, :2] @ uv.unsqueeze(-1)).squeeze(-1)
+            child = dict(src)
+            child["means"] = src["means"] + offset
+            child["log_scales"] = torch.log(s / factor)
+            children.append(child)
+        new = {k: torch.cat([c[k] for c in children]) for k in src}
+    append(params, optimizer, new)
+    state.extend(2 * n)
+    keep = torch.cat([~mask, torch.ones(2 * n, dtype=torch.bool)])
+    select(params, optimizer, keep)
+    state.select(keep)

@@ -15,9 +15,9 @@ from dataclasses import dataclass, field
 
 import torch
 
+from pipeline.config import DensifyConfig
 from pipeline.optimize import ops
 from pipeline.optimize.surfels import SurfelParams
-from pipeline.rasterizer.project import quat_to_rotmat
 
 
 def screen_grad_ndc(means2d_grad: torch.Tensor, width: int, height: int) -> torch.Tensor:
@@ -55,20 +55,10 @@ class DensifyState:
 class DensifyStrategy:
     """Clone small / split large surfels with a high mean screen-space gradient, prune
     transparent and oversized ones, reset opacities periodically; all under a surfel
-    budget. Iteration numbers are 0-based steps of the training loop."""
+    budget. ``cfg`` is its whole configuration (params ``optimize.densify``), ``state``
+    its accumulators. Iteration numbers are 0-based steps of the training loop."""
 
-    start_iter: int = 500
-    stop_iter: int = 15000
-    every: int = 100
-    grad_threshold: float = 2e-4  # mean NDC gradient norm (2DGS/3DGS)
-    percent_dense: float = 0.01  # clone if max scale <= this x extent, else split
-    split_factor: float = 1.6  # a split child's scale = parent / 1.6 (2DGS: 0.8 * 2)
-    prune_opacity: float = 0.05
-    reset_every: int = 3000  # 0: never
-    reset_value: float = 0.01  # opacity reset to min(opacity, this)
-    max_screen_fraction: float = 0.0  # prune radius > this x max(W, H) after the first reset (0: off)
-    max_world_scale: float = 0.1  # prune max scale > this x extent after the first reset
-    max_surfels: int = 1_000_000
+    cfg: DensifyConfig
     scene_extent: float = 1.0
     state: DensifyState | None = field(default=None, repr=False)
 
@@ -92,27 +82,28 @@ class DensifyStrategy:
         done = {}
         # No refinement within ``every`` steps after an opacity reset (as gsplat's
         # pause_refine_after_reset): every surfel would look transparent and be pruned.
-        since_reset = it % self.reset_every if self.reset_every > 0 else it
-        if self.start_iter <= it < self.stop_iter and it > 0 and it % self.every == 0 and (
-                it < self.reset_every or since_reset >= self.every):
+        since_reset = it % self.cfg.reset_every if self.cfg.reset_every > 0 else it
+        if self.cfg.start_iter <= it < self.cfg.stop_iter and it > 0 and it % self.cfg.every == 0 and (
+                it < self.cfg.reset_every or since_reset >= self.cfg.every):
             done.update(self._densify(params, optimizer, generator))
-            done.update(self._prune(params, optimizer, after_reset=self.reset_every > 0 and it > self.reset_every))
+            after_reset = self.cfg.reset_every > 0 and it > self.cfg.reset_every
+            done.update(self._prune(params, optimizer, after_reset=after_reset))
             self.state = DensifyState.zeros(params.num)
-        if self.reset_every > 0 and it > 0 and it % self.reset_every == 0 and it < self.stop_iter:
+        if self.cfg.reset_every > 0 and it > 0 and it % self.cfg.reset_every == 0 and it < self.cfg.stop_iter:
             with torch.no_grad():
-                cap = torch.logit(torch.tensor(self.reset_value, dtype=params.opacity_logits.dtype))
+                cap = torch.logit(torch.tensor(self.cfg.reset_value, dtype=params.opacity_logits.dtype))
                 ops.set_values(params, optimizer, "opacity_logits", params.opacity_logits.clamp_max(cap))
             done["reset"] = True
         return done
 
     def _densify(self, params: SurfelParams, optimizer, generator) -> dict:
         grads = self.state.grad2d / self.state.count.clamp_min(1)
-        high = grads >= self.grad_threshold
+        high = grads >= self.cfg.grad_threshold
         with torch.no_grad():
             max_scale = torch.exp(params.log_scales.max(dim=1).values).to(torch.float64)
-        small = max_scale <= self.percent_dense * self.scene_extent
+        small = max_scale <= self.cfg.percent_dense * self.scene_extent
         clone, split = high & small, high & ~small
-        room = self.max_surfels - params.num
+        room = self.cfg.max_surfels - params.num
         # Under the budget: the surfels with the largest gradients go first.
         n_clone, n_split = int(clone.sum()), int(split.sum())
         if n_clone + n_split > room:
@@ -122,40 +113,20 @@ class DensifyStrategy:
             clone, split = clone & allowed, split & allowed
             n_clone, n_split = int(clone.sum()), int(split.sum())
         if n_clone:
-            with torch.no_grad():
-                new = {k: v[clone].detach().clone() for k, v in params.tensors().items()}
-            ops.append(params, optimizer, new)
-            self.state.extend(n_clone)
+            ops.duplicate(params, optimizer, self.state, clone)
             split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool)])
         if n_split:
-            with torch.no_grad():
-                src = {k: v[split].detach() for k, v in params.tensors().items()}
-                s = torch.exp(src["log_scales"])
-                R = quat_to_rotmat(src["quats"])
-                children = []
-                for _ in range(2):
-                    uv = torch.randn(s.shape, generator=generator, dtype=torch.float64).to(s) * s
-                    offset = (R[:, :, :2] @ uv.unsqueeze(-1)).squeeze(-1)
-                    child = dict(src)
-                    child["means"] = src["means"] + offset
-                    child["log_scales"] = torch.log(s / self.split_factor)
-                    children.append(child)
-                new = {k: torch.cat([c[k] for c in children]) for k in src}
-            ops.append(params, optimizer, new)
-            self.state.extend(2 * n_split)
-            keep = torch.cat([~split, torch.ones(2 * n_split, dtype=torch.bool)])
-            ops.select(params, optimizer, keep)
-            self.state.select(keep)
+            ops.split(params, optimizer, self.state, split, self.cfg.split_factor, generator)
         return {"cloned": n_clone, "split": n_split}
 
     def _prune(self, params: SurfelParams, optimizer, after_reset: bool) -> dict:
         with torch.no_grad():
-            prune = torch.sigmoid(params.opacity_logits).to(torch.float64) < self.prune_opacity
+            prune = torch.sigmoid(params.opacity_logits).to(torch.float64) < self.cfg.prune_opacity
             if after_reset:
                 prune |= torch.exp(params.log_scales.max(dim=1).values).to(torch.float64) > (
-                    self.max_world_scale * self.scene_extent)
-                if self.max_screen_fraction > 0:
-                    prune |= self.state.max_radii > self.max_screen_fraction
+                    self.cfg.max_world_scale * self.scene_extent)
+                if self.cfg.max_screen_fraction > 0:
+                    prune |= self.state.max_radii > self.cfg.max_screen_fraction
         if prune.all():  # never prune to nothing: a scene of zero surfels cannot recover
             prune[torch.argmax(params.opacity_logits.detach())] = False
         n = int(prune.sum())

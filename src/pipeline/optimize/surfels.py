@@ -21,9 +21,10 @@ from scipy.spatial import cKDTree
 
 from pipeline import atomic
 from pipeline.errors import InputError
+from pipeline.geometry import rotmat_to_quat
 from pipeline.rasterizer import Surfels
+from pipeline.rasterizer.project import SH_C0
 
-SH_C0 = 0.28209479177387814
 PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
 
 
@@ -34,36 +35,6 @@ class SurfelInitError(InputError):
 def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
     """Colour in [0, 1] -> the SH DC coefficient whose evaluation gives that colour."""
     return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` rotations -> ``(N, 4)`` unit wxyz quaternions (Shepperd's method)."""
-    R = np.asarray(R, np.float64)
-    tr = np.trace(R, axis1=1, axis2=2)
-    cands = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
-    k = np.argmax(cands, 1)
-    q = np.empty((len(R), 4))
-    for case in range(4):
-        m = k == case
-        r = R[m]
-        if case == 0:
-            s = np.sqrt(1.0 + tr[m]) * 2
-            q[m] = np.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
-                             (r[:, 1, 0] - r[:, 0, 1]) / s], 1)
-        elif case == 1:
-            s = np.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]) * 2
-            q[m] = np.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s, (r[:, 0, 1] + r[:, 1, 0]) / s,
-                             (r[:, 0, 2] + r[:, 2, 0]) / s], 1)
-        elif case == 2:
-            s = np.sqrt(1.0 + r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2]) * 2
-            q[m] = np.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s, 0.25 * s,
-                             (r[:, 1, 2] + r[:, 2, 1]) / s], 1)
-        else:
-            s = np.sqrt(1.0 + r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1]) * 2
-            q[m] = np.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s,
-                             (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], 1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # one sign per rotation: w >= 0
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def frames_from_normals(normals: np.ndarray) -> np.ndarray:

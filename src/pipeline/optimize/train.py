@@ -22,7 +22,7 @@ import json
 import math
 import time
 from collections import defaultdict
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -36,9 +36,9 @@ from pipeline.errors import Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
 from pipeline.optimize import ops, terms
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
-from pipeline.optimize.surfels import PARAM_NAMES, SurfelParams
+from pipeline.optimize.surfels import SurfelParams
 from pipeline.optimize.views import TrainViews
-from pipeline.rasterizer import rasterize
+from pipeline.rasterizer import rasterize, resolve_backend
 
 MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
 MAX_SCALE = 10.0  # x scene_extent; above, a surfel covers everything (degenerate)
@@ -47,14 +47,6 @@ TIMED = ("render", "photo", "gcf", "nor", "dn", "dist", "mask", "backward", "ste
 
 class NonFiniteLossError(RuntimeError):
     """A loss term became NaN or Inf; training stopped and no model was written."""
-
-
-def resolve_backend(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    if name == "cuda" and not torch.cuda.is_available():
-        raise ValueError("optimize.backend is cuda but no CUDA device is available (use auto or cpu)")
-    return name
 
 
 @dataclass
@@ -105,12 +97,7 @@ class Trainer:
         self.num_init = params.num
         self.fingerprint = _fingerprint(cfg, loss, params, views)
         self.optimizer = ops.make_optimizer(params, _lrs(cfg))
-        d = cfg.densify
-        self.strategy = DensifyStrategy(
-            start_iter=d.start_iter, stop_iter=d.stop_iter, every=d.every, grad_threshold=d.grad_threshold,
-            percent_dense=d.percent_dense, prune_opacity=d.prune_opacity, reset_every=d.reset_every,
-            reset_value=d.reset_value, max_world_scale=d.max_world_scale, max_screen_fraction=d.max_screen_fraction,
-            max_surfels=d.max_surfels, scene_extent=cfg.scene_extent)
+        self.strategy = DensifyStrategy(cfg.densify, scene_extent=cfg.scene_extent)
         self.strategy.initialize(params.num)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
@@ -170,7 +157,7 @@ class Trainer:
         return self.queue.pop()
 
     def step(self) -> dict:
-        cfg, lw, it = self.cfg, self.loss, self.it
+        cfg, it = self.cfg, self.it
         clock = time.perf_counter
         t = clock()
         for group in self.optimizer.param_groups:
@@ -191,51 +178,22 @@ class Trainer:
 
         values: dict[str, torch.Tensor] = {}
         total = torch.zeros((), dtype=rgb.dtype)
-
-        def add(name: str, value: torch.Tensor, weight: float) -> None:
-            nonlocal total, t2
+        for name, value, weight in self.loss_terms(it, i, v, out, rgb, target):
+            if weight is None:  # logged only
+                values[name] = value.detach()
+                continue
             if not bool(torch.isfinite(value)):
                 raise NonFiniteLossError(f"loss term {name} is {float(value.detach())} at iteration {it} "
                                          f"(view {v.view_id}, {self.params.num} surfels); no model written")
             values[name] = value.detach()
             total = total + weight * value
             t3 = clock()
-            self.seconds[name] += t3 - t2
+            self.seconds[name] += t3 - t2  # each term's own time: the generator computes it on demand
             t2 = t3
-
-        photo, l1 = terms.photometric_loss(rgb, target, lw.lambda_dssim)
-        add("photo", photo, 1.0)
-        values["l1"] = l1.detach()
-        surface = out.alpha.detach() > cfg.surface_alpha
-        if v.mask is not None:
-            surface &= v.mask
-        if lw.lambda_gcf > 0 and it >= cfg.start.gcf and v.features is not None:
-            sources = [(s.K, s.world_to_cam, s.features, s.feature_image_size)
-                       for j in range(self.views.num_views) if j != i
-                       for s in [self.views.at(j, cfg.downscale_at(it))]]
-            points = surface
-            n_surface = int(surface.sum())
-            if 0 < cfg.gcf_max_points < n_surface:  # a random subset: the loss is a mean over points
-                idx = torch.nonzero(surface.reshape(-1)).squeeze(1)
-                pick = idx[torch.randperm(n_surface, generator=self.generator)[: cfg.gcf_max_points]]
-                points = torch.zeros(surface.numel(), dtype=torch.bool)
-                points[pick] = True
-                points = points.view_as(surface)
-            add("gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, valid=points,
-                                ref_image_size=v.feature_image_size,
-                                max_dissimilarity=lw.gcf_max_dissimilarity), lw.lambda_gcf)
-        if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
-            n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
-            l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)
-            add("nor", lw.lambda_nc * l_nc + lw.lambda_ngc * l_ngc, lw.lambda_nor)
-        if lw.lambda_dn > 0 and it >= cfg.start.dn:
-            depth = out.depth_median if cfg.dn_depth == "median" else out.depth_expected
-            add("dn", terms.depth_normal_loss(out.normal_cam.permute(2, 0, 1), depth, out.alpha, v.K), lw.lambda_dn)
-        if lw.lambda_d > 0 and it >= cfg.start.d:
-            add("dist", out.distortion.mean(), lw.lambda_d)
-        if lw.lambda_mask > 0 and v.mask is not None:
-            add("mask", terms.mask_loss(out.alpha, v.mask), lw.lambda_mask)
-        add("total", total, 0.0)
+        values["total"] = total.detach()
+        if not bool(torch.isfinite(total)):
+            raise NonFiniteLossError(f"loss term total is {float(total.detach())} at iteration {it} "
+                                     f"(view {v.view_id}, {self.params.num} surfels); no model written")
 
         t = clock()
         total.backward()
@@ -261,6 +219,45 @@ class Trainer:
         row.update({k: float(x) for k, x in values.items()})
         row.update({k: int(x) for k, x in changes.items()})
         return row
+
+    def loss_terms(self, it: int, i: int, v, out, rgb: torch.Tensor,
+                   target: torch.Tensor) -> Iterator[tuple[str, torch.Tensor, float | None]]:
+        """The named, weighted loss terms of iteration ``it`` on view ``i`` (render ``out``,
+        composited ``rgb``, ``target`` image), in a fixed order, each computed when asked for
+        (so the caller times each); a weight of ``None`` is a figure logged, not optimised."""
+        cfg, lw = self.cfg, self.loss
+        photo, l1 = terms.photometric_loss(rgb, target, lw.lambda_dssim)
+        yield "photo", photo, 1.0
+        yield "l1", l1, None
+        surface = out.alpha.detach() > cfg.surface_alpha
+        if v.mask is not None:
+            surface &= v.mask
+        if lw.lambda_gcf > 0 and it >= cfg.start.gcf and v.features is not None:
+            sources = [(s.K, s.world_to_cam, s.features, s.feature_image_size)
+                       for j in range(self.views.num_views) if j != i
+                       for s in [self.views.at(j, cfg.downscale_at(it))]]
+            points = surface
+            n_surface = int(surface.sum())
+            if 0 < cfg.gcf_max_points < n_surface:  # a random subset: the loss is a mean over points
+                idx = torch.nonzero(surface.reshape(-1)).squeeze(1)
+                pick = idx[torch.randperm(n_surface, generator=self.generator)[: cfg.gcf_max_points]]
+                points = torch.zeros(surface.numel(), dtype=torch.bool)
+                points[pick] = True
+                points = points.view_as(surface)
+            yield "gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, valid=points,
+                                  ref_image_size=v.feature_image_size,
+                                  max_dissimilarity=lw.gcf_max_dissimilarity), lw.lambda_gcf
+        if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
+            n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
+            l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)
+            yield "nor", lw.lambda_nc * l_nc + lw.lambda_ngc * l_ngc, lw.lambda_nor
+        if lw.lambda_dn > 0 and it >= cfg.start.dn:
+            depth = out.depth_median if cfg.dn_depth == "median" else out.depth_expected
+            yield "dn", terms.depth_normal_loss(out.normal_cam.permute(2, 0, 1), depth, out.alpha, v.K), lw.lambda_dn
+        if lw.lambda_d > 0 and it >= cfg.start.d:
+            yield "dist", out.distortion.mean(), lw.lambda_d
+        if lw.lambda_mask > 0 and v.mask is not None:
+            yield "mask", terms.mask_loss(out.alpha, v.mask), lw.lambda_mask
 
     def _degenerate(self) -> torch.Tensor:
         """Surfels with non-finite parameters or gradients, or a degenerate scale. The

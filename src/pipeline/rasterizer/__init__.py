@@ -13,12 +13,23 @@ from __future__ import annotations
 
 import torch
 
+from pipeline.errors import ConfigError
 from pipeline.rasterizer.project import colors_of, project
 from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
 
 BACKENDS = ("cpu", "reference", "cuda")
 
-__all__ = ["BACKENDS", "Camera", "RenderOutput", "Surfels", "rasterize"]
+__all__ = ["BACKENDS", "Camera", "RenderOutput", "Surfels", "rasterize", "resolve_backend"]
+
+
+def resolve_backend(name: str) -> str:
+    """A backend name of params ``optimize.backend`` (``auto``: cuda where a device is, else
+    cpu) as one of :data:`BACKENDS`."""
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("optimize.backend is cuda but no CUDA device is available (use auto or cpu)")
+    return name
 
 
 def rasterize(

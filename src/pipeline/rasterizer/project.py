@@ -31,7 +31,7 @@ T_MIN = 1e-4
 # division bounded, so unused branches never produce inf * 0 in a gradient.
 UV_MAX = 1e6
 
-_SH_C0 = 0.28209479177387814
+SH_C0 = 0.28209479177387814  # the degree-0 real spherical harmonic, 1 / (2 sqrt(pi))
 _SH_C1 = 0.4886025119029199
 _SH_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
 _SH_C3 = (
@@ -85,7 +85,7 @@ def quat_to_rotmat(q: Tensor) -> Tensor:
 def eval_sh(degree: int, sh: Tensor, dirs: Tensor) -> Tensor:
     """Real SH (3DGS sign convention) of ``(P, K, 3)`` coefficients along unit ``dirs``,
     shifted by 0.5 and clamped at 0 like 3DGS/gsplat. Returns ``(P, 3)``."""
-    out = _SH_C0 * sh[:, 0]
+    out = SH_C0 * sh[:, 0]
     if degree > 0:
         x, y, z = (dirs[:, i : i + 1] for i in range(3))
         out = out - _SH_C1 * y * sh[:, 1] + _SH_C1 * z * sh[:, 2] - _SH_C1 * x * sh[:, 3]

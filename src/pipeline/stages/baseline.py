@@ -1,6 +1,6 @@
 """``gcgs baseline``: the classical baseline of one scene (docs/init.md): every init
 backend's cloud and the MVS + TSDF mesh against the scene's ground truth, each step timed
-(:mod:`pipeline.evaluation.baseline`). Reads the init stage's output for the default
+(:mod:`pipeline.runs.baseline`). Reads the init stage's output for the default
 backend; writes the other clouds, the mesh and its metrics to ``--out-dir`` and the
 figures to ``--report`` (JSON). ``gcgs baseline-report`` combines the scenes' reports.
 """
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from pipeline import atomic
 from pipeline.config import EvaluateConfig, InitConfig, MeshConfig, load_params, scene_entry, section
-from pipeline.evaluation import baseline
+from pipeline.runs import baseline
 from pipeline.measure import provenance
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pipeline import atomic
 from pipeline.config import load_params
-from pipeline.evaluation.baseline_table import markdown
+from pipeline.reports.baseline_table import markdown
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -8,7 +8,7 @@ import json
 
 from pipeline import atomic
 from pipeline.config import DataConfig, EvaluateConfig, load_params, section
-from pipeline.evaluation.limit import run_limit
+from pipeline.runs.limit import run_limit
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

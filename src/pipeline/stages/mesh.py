@@ -7,8 +7,8 @@ import sys
 
 from pipeline.config import MeshConfig, OptimizeConfig, load_params, section
 from pipeline.meshing import tsdf
-from pipeline.meshing.surfels import mesh_surfels_dir
-from pipeline.optimize.train import resolve_backend
+from pipeline.runs.mesh import mesh_surfels_dir
+from pipeline.rasterizer import resolve_backend
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

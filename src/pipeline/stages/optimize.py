@@ -14,7 +14,7 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.config import LossConfig, OptimizeConfig, load_params, section
 from pipeline.measure import measure
-from pipeline.optimize.run import default_side_paths, run_optimize, timing_report
+from pipeline.runs.optimize import default_side_paths, run_optimize, timing_report
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

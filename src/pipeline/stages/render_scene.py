@@ -1,12 +1,12 @@
 """``gcgs render-scene``: one scene's picture for the report (input view, surfels' colour and
-normal, mesh; :mod:`pipeline.evaluation.renders`) -> ``reports/renders/SCENE.png``."""
+normal, mesh; :mod:`pipeline.reports.renders`) -> ``reports/renders/SCENE.png``."""
 from __future__ import annotations
 
 import argparse
 
 from pipeline.config import OptimizeConfig, load_params, section
-from pipeline.evaluation.renders import PANEL_WIDTH, scene_panels, write_png
-from pipeline.optimize.train import resolve_backend
+from pipeline.reports.renders import PANEL_WIDTH, scene_panels, write_png
+from pipeline.rasterizer import resolve_backend
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

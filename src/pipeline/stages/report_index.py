@@ -1,6 +1,6 @@
 """``gcgs report-index``: ``reports/index.md``, the page that shows the tables, the
 speed-accuracy plot, each configured scene's figures, settings, picture and training curves
-(:mod:`pipeline.evaluation.report_index`)."""
+(:mod:`pipeline.reports.index`)."""
 from __future__ import annotations
 
 import argparse
@@ -8,7 +8,7 @@ from pathlib import Path
 
 from pipeline import atomic
 from pipeline.config import load_params
-from pipeline.evaluation.report_index import index_markdown
+from pipeline.reports.index import index_markdown
 from pipeline.measure import provenance
 
 

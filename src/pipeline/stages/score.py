@@ -9,8 +9,8 @@ from pathlib import Path
 
 from pipeline import atomic
 from pipeline.config import DataConfig, EvaluateConfig, OptimizeConfig, load_params, scene_entry, section
-from pipeline.evaluation.scene_metrics import scene_metrics
-from pipeline.optimize.train import resolve_backend
+from pipeline.runs.score import scene_metrics
+from pipeline.rasterizer import resolve_backend
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -1,13 +1,13 @@
 """``gcgs table1``: Table I (overall Chamfer per scene, measured here next to published
 figures; held-out scores of the scans without ground truth) -> Markdown and CSV, for the
-scenes of params ``scenes`` (:mod:`pipeline.evaluation.tables`)."""
+scenes of params ``scenes`` (:mod:`pipeline.reports.table1`)."""
 from __future__ import annotations
 
 import argparse
 
 from pipeline import atomic
 from pipeline.config import load_params
-from pipeline.evaluation.tables import build_table1, csv_text, markdown
+from pipeline.reports.table1 import build_table1, csv_text, markdown
 from pipeline.measure import provenance
 
 

@@ -1,12 +1,12 @@
 """``gcgs table2``: Table II (the ablation on the synthetic suite) -> Markdown and CSV
-(:mod:`pipeline.evaluation.table2`)."""
+(:mod:`pipeline.reports.table2`)."""
 from __future__ import annotations
 
 import argparse
 
 from pipeline import atomic
 from pipeline.config import AblationConfig, SynthConfig, load_params, section
-from pipeline.evaluation.table2 import build_table2, csv_text, markdown, read_published_ablation
+from pipeline.reports.table2 import build_table2, csv_text, markdown, read_published_ablation
 from pipeline.measure import provenance
 
 
@@ -27,7 +27,7 @@ def run(args: argparse.Namespace) -> int:
     ablation = section(AblationConfig, "ablation", params)
     scenes = section(SynthConfig, "synth", params).scenes
     rows = build_table2(params, scenes, ablation.run, ablation.variants, args.metrics_dir, args.variants_dir,
-                        args.baseline_dir)
+                        args.baseline_dir, args.limit_dir)
     md = markdown(rows, scenes, provenance()["commit"], read_published_ablation(args.published))
     text = csv_text(rows, scenes)
     atomic.write_text(args.out_md, md)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 
 from pipeline.config import DataConfig, load_params, scene_entry, section
-from pipeline.evaluation.variants import run_variant
+from pipeline.runs.variant import run_variant
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

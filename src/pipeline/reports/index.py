@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 
 from pipeline.errors import MissingInputError
-from pipeline.evaluation.tables import read_json
+from pipeline.reports.read import read_json
 
 # What may exist, in the order shown: (file under reports/, title). Table I is required.
 TABLES = (("table1.md", "Table I"), ("table2.md", "Table II: ablation"))

@@ -1,5 +1,5 @@
 """The classical baseline of one scene (docs/init.md); the table of several scenes is in
-:mod:`pipeline.evaluation.baseline_table`.
+:mod:`pipeline.reports.baseline_table`.
 
 The init stage has already run the default backend (``init.backend``): its cloud and depth
 maps are read from its folder, its time and peak memory from its ``init.json``. What no
@@ -24,7 +24,7 @@ from pipeline import atomic
 from pipeline.config import EvaluateConfig, InitConfig, MeshConfig
 from pipeline.data import dtu
 from pipeline.evaluation import gt
-from pipeline.evaluation.baseline_steps import backend_cloud, mesh_chamfer, tsdf_mesh
+from pipeline.runs.baseline_steps import backend_cloud, mesh_chamfer, tsdf_mesh
 from pipeline.evaluation.clouds import cloud_metrics
 from pipeline.init import BACKEND_MODULES
 from pipeline.init.io import read_ply

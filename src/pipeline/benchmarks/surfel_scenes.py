@@ -15,6 +15,7 @@ import numpy as np
 import torch
 
 from pipeline import geometry
+from pipeline.geometry import rotmat_to_quat
 from pipeline.rasterizer.types import Camera, Surfels
 
 BUNDLED_SCAN = Path(__file__).resolve().parents[3] / "data" / "raw" / "dtu" / "scan24"
@@ -26,32 +27,6 @@ _BUMP = 0.08
 def _radius(d: torch.Tensor) -> torch.Tensor:
     """Surface radius along unit directions ``d`` (N, 3)."""
     return _RADIUS * (1 + _BUMP * (torch.sin(3 * d[:, 0]) * torch.cos(2 * d[:, 1]) + 0.5 * torch.sin(4 * d[:, 2])))
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """``(N, 3, 3)`` rotations -> ``(N, 4)`` wxyz unit quaternions (Shepperd's method)."""
-    tr = np.trace(R, axis1=1, axis2=2)
-    cands = np.stack([tr, R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]], 1)
-    best = cands.argmax(1)
-    q = np.empty((R.shape[0], 4))
-    for b in range(4):
-        i = best == b
-        r = R[i]
-        if b == 0:
-            s = 2 * np.sqrt(1 + tr[i])
-            q[i] = np.stack([s / 4, (r[:, 2, 1] - r[:, 1, 2]) / s, (r[:, 0, 2] - r[:, 2, 0]) / s,
-                             (r[:, 1, 0] - r[:, 0, 1]) / s], 1)  # fmt: skip
-        else:
-            a = b - 1
-            j, k = (a + 1) % 3, (a + 2) % 3
-            s = 2 * np.sqrt(1 + r[:, a, a] - r[:, j, j] - r[:, k, k])
-            qa = np.empty((r.shape[0], 4))
-            qa[:, 0] = (r[:, k, j] - r[:, j, k]) / s
-            qa[:, 1 + a] = s / 4
-            qa[:, 1 + j] = (r[:, j, a] + r[:, a, j]) / s
-            qa[:, 1 + k] = (r[:, k, a] + r[:, a, k]) / s
-            q[i] = qa
-    return q / np.linalg.norm(q, axis=1, keepdims=True)
 
 
 def dtu_camera(width: int, height: int, scan: Path = BUNDLED_SCAN, view: int = VIEW) -> tuple[Camera, np.ndarray]:

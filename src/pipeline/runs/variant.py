@@ -11,11 +11,11 @@ from pathlib import Path
 from pipeline import atomic
 from pipeline.config import (AblationConfig, ConfigError, EvaluateConfig, LossConfig, MeshConfig, OptimizeConfig,
                              VariantConfig, merged_section, section)
-from pipeline.evaluation.scene_metrics import scene_metrics
+from pipeline.runs.score import scene_metrics
 from pipeline.measure import measure
-from pipeline.meshing.surfels import mesh_surfels_dir
-from pipeline.optimize.run import run_optimize, timing_report
-from pipeline.optimize.train import resolve_backend
+from pipeline.runs.mesh import mesh_surfels_dir
+from pipeline.runs.optimize import run_optimize, timing_report
+from pipeline.rasterizer import resolve_backend
 
 
 def variant_configs(params: dict, variant: str) -> tuple[VariantConfig, OptimizeConfig, LossConfig, MeshConfig]:

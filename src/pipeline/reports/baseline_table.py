@@ -1,5 +1,5 @@
 """The combined Markdown table of several scenes' baseline reports
-(:func:`pipeline.evaluation.baseline.baseline_scene`)."""
+(:func:`pipeline.runs.baseline.baseline_scene`)."""
 from __future__ import annotations
 
 
@@ -15,7 +15,7 @@ def markdown(reports: dict[str, dict], notes: list[str] = ()) -> str:
              f"Generated per scene by `gcgs baseline` (`reports/baseline/SCENE.json`; stage `baseline`) at commit "
              f"{', '.join(f'`{c}`' for c in commits)} on {'; '.join(machines)}, combined by `gcgs baseline-report`. "
              "All distances in mm (world frame). Definitions: `src/pipeline/evaluation/clouds.py`, "
-             "`src/pipeline/evaluation/baseline.py` and docs/init.md.",
+             "`src/pipeline/runs/baseline.py` and docs/init.md.",
              "", "## Classical baseline mesh (mvs depth maps -> TSDF -> DTU Chamfer)", "",
              "| scene | accuracy | completeness | overall | triangles |", "| --- | --- | --- | --- | --- |"]
     for name, r in reports.items():

@@ -1,4 +1,4 @@
-"""The steps of the baseline (:mod:`pipeline.evaluation.baseline`) that run in a child
+"""The steps of the baseline (:mod:`pipeline.runs.baseline`) that run in a child
 process each. A child imports this module: its imports are inside each step so that a
 child's peak memory holds what its step needs, as a ``gcgs`` command's would, not the
 imports of every step."""

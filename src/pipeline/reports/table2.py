@@ -14,7 +14,7 @@ import io
 from pathlib import Path
 
 from pipeline.config import LossConfig, VariantConfig, merged_section
-from pipeline.evaluation.tables import ReportError, covered_fraction, figure, read_json
+from pipeline.reports.read import ReportError, covered_fraction, figure, read_json
 
 MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
@@ -47,7 +47,7 @@ def build_table2(params: dict, scenes: list[str], run: list[str], variants: dict
                  limit_dir: str | Path) -> list[dict]:
     """Rows ``{"row", "dense_init", "gcf", "nor", SCENE: overall mm ..., "mean": mm,
     "covered": {SCENE: fraction}, "accuracy": {SCENE: mm, "mean": mm}, "completeness": {...}}``
-    (``covered``: :func:`~pipeline.evaluation.tables.covered_fraction`); the 3-view limit first."""
+    (``covered``: :func:`~pipeline.reports.table1.covered_fraction`); the 3-view limit first."""
     sources = [(LIMIT, None, lambda s: Path(limit_dir) / f"{s}.json", "chamfer"),
                (MVS_TSDF, None, lambda s: Path(baseline_dir) / f"{s}.json", "evaluate.metrics")]
     sources += [(name, variants[name], lambda s, n=name: Path(variants_dir) / n / f"{s}.json", "chamfer")
