@@ -248,7 +248,7 @@ def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundle
     from pipeline.data.prepare import prepare_scene
     from pipeline.data.scene import SceneError
     from pipeline.evaluation import gt
-    from pipeline.evaluation.limit import limit_mesh, mesh_area_mm2
+    from pipeline.synth.limit import limit_mesh, mesh_area_mm2
     from pipeline.runs.limit import run_limit
     from pipeline.meshing.raycast import distance_to_mesh
 

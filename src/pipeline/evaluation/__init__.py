@@ -6,5 +6,4 @@ files, and the other measures of a result. Nothing here runs a stage or writes a
 * :mod:`pipeline.evaluation.dtu_eval` -- the evaluation protocol itself.
 * :mod:`pipeline.evaluation.clouds` -- a point cloud against the ground truth.
 * :mod:`pipeline.evaluation.heldout` -- held-out-view mask IoU and masked PSNR (no GT).
-* :mod:`pipeline.evaluation.limit` -- the 3-view limit: the GT the input views see.
 """

@@ -4,11 +4,24 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
+
 from pipeline import atomic
 from pipeline.config import EvaluateConfig
+from pipeline.data import dtu
 from pipeline.data.scene import SceneError
-from pipeline.evaluation import gt
-from pipeline.evaluation.limit import limit_chamfer, limit_mesh, mesh_area_mm2
+from pipeline.evaluation import dtu_eval, gt
+from pipeline.synth.limit import limit_mesh, mesh_area_mm2
+
+
+def limit_chamfer(mesh: tuple[np.ndarray, np.ndarray], scene_dir: str | Path, gt_dir: str | Path,
+                  cfg: EvaluateConfig, views: list[int], log=None) -> dict:
+    """DTU Chamfer of the limit mesh against the scene's GT, culled like the method's mesh
+    (``evaluate.cull_views`` of the prepared ``scene_dir``)."""
+    ground = gt.read_ground_truth(gt_dir, dtu.read_meta(Path(scene_dir)).get("scan_id"))
+    cull = dtu_eval.load_cull_views(scene_dir, cfg.cull_views, views)
+    m = dtu_eval.evaluate_mesh(mesh[0], mesh[1], ground, cfg, views=cull, log=log, name="3-view limit")
+    return {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems", "counts")}
 
 
 def run_limit(synth_dir: str | Path, scene_dir: str | Path, out_dir: str | Path, cfg: EvaluateConfig,
