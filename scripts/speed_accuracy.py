@@ -12,7 +12,7 @@ cell's times add those of the earlier runs. Usage: ``python scripts/speed_accura
 from __future__ import annotations
 
 import argparse
-import json
+import dataclasses
 import os
 import subprocess
 import sys
@@ -20,6 +20,7 @@ from pathlib import Path
 
 from pipeline.config import AblationConfig, load_params, section
 from pipeline.reports.speed_accuracy import collect_cells, write_report
+from pipeline.evaluation.record import SceneMetrics
 from pipeline.measure import provenance
 
 REPORTS = Path("reports/speed_accuracy")
@@ -51,9 +52,9 @@ def main() -> int:
             before = provenance()
             print(f"[sweep] {scene} {cell}: {' '.join(cmd)}", flush=True)
             subprocess.run(cmd, check=True, env=env)
-            metrics = json.loads(report.read_text())
-            metrics["provenance"] = {**before, "load_average_1min_after": round(os.getloadavg()[0], 2)}
-            report.write_text(json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+            metrics = SceneMetrics.read(report)
+            dataclasses.replace(metrics, provenance={**before, "load_average_1min_after": round(os.getloadavg()[0], 2)}
+                                ).write(report)
     rows = collect_cells(REPORTS, sweep.scenes, sweep.cells)
     write_report(rows, Path("reports/speed_accuracy.csv"), Path("reports/speed_accuracy.png"), labels=PRESET_CELLS)
     print(f"[sweep] {len(rows)} cells -> reports/speed_accuracy.csv, reports/speed_accuracy.png")

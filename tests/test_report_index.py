@@ -85,11 +85,12 @@ def _reports(root: Path) -> dict:
     (root / "table1.md").write_text("# Table I: overall Chamfer\n\n| method | x |\n| --- | --- |\n| a | 1 |\n")
     train = {"preset": "fast", "iterations": 500, "backend": "cpu", "surfels_final": 123}
     timing = {"wall_s": 61.4, "cpu_s": 70.2, "peak_rss_mb": 900.0}
+    mesh = {"triangles_kept": 10, "components_kept": 1, "views_virtual": 0}
     (root / "metrics/synth_a.json").write_text(json.dumps({
-        "train": train, "timing": timing,
+        "scene": "synth_a", "train": train, "timing": timing, "mesh": mesh,
         "chamfer": {"accuracy_mm": 0.5, "completeness_mm": 1.5, "overall_mm": 1.0, "valid": True, "problems": []}}))
     (root / "metrics/scan24.json").write_text(json.dumps({
-        "train": train | {"preset": "paper"}, "timing": timing,
+        "scene": "scan24", "train": train | {"preset": "paper"}, "timing": timing, "mesh": mesh,
         "heldout": {"views": 46, "size": [200, 150], "iou_mean": 0.9, "hull_iou_mean": 0.7,
                     "psnr_masked_db_mean": 16.46, "per_view": {}}}))
     (root / "renders").mkdir()
@@ -122,7 +123,7 @@ def test_index_shows_what_exists_with_its_source(tmp_path):
 def test_index_names_a_missing_metrics_file_and_writes_nothing(tmp_path, capsys):
     scenes = _reports(tmp_path)
     (tmp_path / "metrics/synth_a.json").unlink()
-    with pytest.raises(MissingInputError, match=r"metrics/synth_a\.json: no metrics of scene synth_a"):
+    with pytest.raises(MissingInputError, match=r"metrics/synth_a\.json: no metrics \(file not found; run the score stage"):
         index_markdown(tmp_path, scenes, "x")
     params = tmp_path / "params.yaml"
     params.write_text(json.dumps({"scenes": scenes}))

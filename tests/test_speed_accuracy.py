@@ -29,7 +29,8 @@ def test_identical_cells_are_both_on_the_front():
 
 
 def _report(folder, scene, cell, overall, cpu):
-    m = {"chamfer": {"overall_mm": overall, "accuracy_mm": overall / 2, "completeness_mm": overall * 1.5},
+    m = {"scene": scene, "mesh": {},
+         "chamfer": {"overall_mm": overall, "accuracy_mm": overall / 2, "completeness_mm": overall * 1.5},
          "timing": {"wall_s": cpu / 2, "cpu_s": cpu, "peak_rss_mb": 100.0},
          "train": {"iterations": 10, "surfels_final": 5},
          "variant": {"name": cell, "init": "mvs", "optimize": {"iterations": 10}, "loss": {}, "mesh": {}},
@@ -55,7 +56,13 @@ def test_table_and_plot_from_cell_reports(tmp_path):
 def test_bad_cell_report_is_named(tmp_path):
     (tmp_path / "s").mkdir()
     (tmp_path / "s" / "x.json").write_text('{"chamfer": {}}')
-    with pytest.raises(InputError, match=r"x\.json: not a variant report"):
+    with pytest.raises(InputError, match=r"x\.json: missing `scene`, `train`, `timing`, `mesh`"):
         collect_cells(tmp_path, ["s"], ["x"])
+    _report(tmp_path, "s", "y", 1.0, 1.0)
+    m = json.loads((tmp_path / "s" / "y.json").read_text())
+    del m["variant"]
+    (tmp_path / "s" / "y.json").write_text(json.dumps(m))
+    with pytest.raises(InputError, match=r"y\.json: not a variant report"):
+        collect_cells(tmp_path, ["s"], ["y"])
     with pytest.raises(InputError, match="no measured cell"):
         write_report([], tmp_path / "a.csv", tmp_path / "a.png")

@@ -1,5 +1,6 @@
 """Synthetic scenes: determinism, layout, camera handling, rendering, ground truth, CLI."""
 import json
+from pathlib import Path
 
 import numpy as np
 import open3d as o3d
@@ -268,3 +269,69 @@ def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundle
     assert gt.read_mesh(tmp_path / "limit" / "mesh.ply")[1].shape == F3.shape
     with pytest.raises(SceneError, match="not a synthetic scene"):
         limit_mesh(bundled_scan, [23, 24, 33])
+
+
+# --- The same bytes on any x86-64 machine (issue 18) -------------------------------------------
+
+HASHES = Path(__file__).with_name("synth_hashes.json")  # regenerate: GCGS_WRITE_SYNTH_HASHES=1 pytest -k committed
+
+
+class _CasterWithOtherFloats:
+    """Open3D's ray caster whose float outputs come out as another CPU's code path could
+    give them: hit distances a few float32 ulps off, barycentrics and normals perturbed."""
+
+    def __init__(self, caster):
+        self._caster = caster
+
+    def __getattr__(self, name):
+        return getattr(self._caster, name)
+
+    def cast_rays(self, rays):
+        ans = self._caster.cast_rays(rays)
+        out = {k: ans[k].numpy().copy() for k in ("t_hit", "geometry_ids", "primitive_ids", "primitive_uvs",
+                                                   "primitive_normals")}
+        out["t_hit"] *= np.float32(1 + 3e-7)
+        out["primitive_uvs"] += np.float32(1e-6)
+        out["primitive_normals"] *= np.float32(1 + 1e-6)
+        return {k: o3d.core.Tensor(v) for k, v in out.items()}
+
+
+def test_render_does_not_depend_on_the_ray_casters_float_path(cams):
+    scene = build_scene("synth_thin", 0, cams)
+    plain, other = Renderer(scene), Renderer(scene)
+    other.raycaster = _CasterWithOtherFloats(other.raycaster)
+    for v in (23, 33):
+        K = scaled_K(cams, v, W, H)
+        a, b = plain.cast(K, cams.world_to_cam[v], W, H), other.cast(K, cams.world_to_cam[v], W, H)
+        np.testing.assert_array_equal(a["depth"], b["depth"])
+        np.testing.assert_array_equal(plain.shade(a), other.shade(b))
+
+
+def test_snap_merges_last_bit_differences_and_keeps_32_bits():
+    from pipeline.synth.render import snap
+
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=1000) * 10.0 ** rng.integers(-4, 4, 1000)
+    s = snap(x)
+    assert np.all(np.abs(s - x) <= np.abs(x) * 2.0**-32)
+    for ulps in (1, -1, 3):
+        # equal unless x lies within those ulps of a rounding boundary (odds ~1e-9 here)
+        np.testing.assert_array_equal(snap(x + ulps * np.spacing(x)), s)
+    assert snap(0.0) == 0.0 and snap(s).tolist() == s.tolist()
+
+
+@pytest.mark.parametrize("name", ["synth_textureless", "synth_relief", "synth_thin"])
+def test_synthetic_scenes_have_the_committed_bytes(name, tmp_path, bundled_scan):
+    """Every file of each scene (images, masks, cameras, ground truth) has the SHA-256 the
+    repository holds: what this machine renders is what any x86-64 machine renders."""
+    import hashlib
+    import os
+
+    out = write_synth_scene(name, tmp_path / name, seed=0, width=80, height=60, cameras_dir=bundled_scan, log=None)
+    got = {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest()
+           for p in sorted(out.rglob("*")) if p.is_file() and p.name != "scene.json"}
+    committed = json.loads(HASHES.read_text()) if HASHES.is_file() else {}
+    if os.environ.get("GCGS_WRITE_SYNTH_HASHES"):
+        committed[name] = got
+        HASHES.write_text(json.dumps(committed, indent=1, sort_keys=True) + "\n")
+    assert got == committed[name]

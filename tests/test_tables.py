@@ -22,8 +22,10 @@ PUBLISHED = REPO / "data" / "published" / "dtu_3view_table1.csv"
 
 
 def _metrics(overall=None, heldout=None, preset="fast", iterations=500) -> dict:
-    m = {"train": {"preset": preset, "iterations": iterations, "backend": "cpu", "masks": True,
-                   "surfels_init": 10, "surfels_final": 20}}
+    m = {"scene": "s", "train": {"preset": preset, "iterations": iterations, "backend": "cpu", "masks": True,
+                                 "surfels_init": 10, "surfels_final": 20},
+         "timing": {"wall_s": 1.0, "cpu_s": 1.0, "peak_rss_mb": 100.0},
+         "mesh": {"triangles_kept": 10, "components_kept": 1, "views_virtual": 0}}
     if overall is not None:
         m["chamfer"] = {"accuracy_mm": overall, "completeness_mm": overall, "overall_mm": overall,
                         "valid": True, "problems": []}
@@ -34,7 +36,8 @@ def _metrics(overall=None, heldout=None, preset="fast", iterations=500) -> dict:
 
 
 def _baseline(overall, commit="abc123") -> dict:
-    return {"commit": commit, "evaluate": {"status": "ok", "metrics": {"overall_mm": overall}}}
+    return {"commit": commit, "evaluate": {"status": "ok", "metrics": {
+        "accuracy_mm": overall, "completeness_mm": overall, "overall_mm": overall, "valid": True, "problems": []}}}
 
 
 @pytest.fixture
@@ -131,11 +134,15 @@ def test_read_table_csv_rejects_a_non_number(reports):
 
 
 @pytest.mark.parametrize("damage, message", [
-    (lambda p: p.unlink(), r"synth_b\.json: no metrics of scene synth_b"),
-    (lambda p: p.write_text("{not json"), r"synth_b\.json: metrics of scene synth_b is not valid JSON"),
-    (lambda p: p.write_text(json.dumps({"chamfer": {"overall_mm": None}})),
-     r"synth_b\.json: `chamfer\.overall_mm` must be a finite number"),
-    (lambda p: p.write_text(json.dumps({"train": {}})), r"synth_b\.json: missing `chamfer\.overall_mm`"),
+    (lambda p: p.unlink(), r"synth_b\.json: no metrics \(file not found"),
+    (lambda p: p.write_text("{not json"), r"synth_b\.json: metrics are not valid JSON"),
+    (lambda p: p.write_text(json.dumps(_metrics(1.0) | {"chamfer": {"overall_mm": None, "valid": True}})),
+     r"synth_b\.json: chamfer: `accuracy_mm` must be a number, got None"),
+    (lambda p: p.write_text(json.dumps(_metrics(1.0) | {"chamfer": {"accuracy_mm": None, "completeness_mm": 1.0,
+                                                                     "overall_mm": None, "valid": False,
+                                                                     "problems": ["no data point"]}})),
+     r"synth_b\.json: Chamfer overall, accuracy undefined \(no data point\)"),
+    (lambda p: p.write_text(json.dumps({"train": {}})), r"synth_b\.json: missing `scene`, `timing`, `mesh`"),
 ])
 def test_bad_metrics_file_is_named_and_nothing_written(reports, tmp_path, capsys, damage, message):
     scenes, metrics, baseline, _ = reports
@@ -157,7 +164,7 @@ def test_missing_baseline_report_and_missing_heldout_are_named(reports):
     with pytest.raises(MissingInputError, match=r"scan37\.json: no baseline report of scene scan37"):
         tables.build_table1(scenes, metrics, baseline, PUBLISHED, "x")
     (metrics / "scan24.json").write_text(json.dumps(_metrics()))
-    with pytest.raises(InputError, match=r"scan24\.json: scene scan24 has no ground truth"):
+    with pytest.raises(InputError, match=r"scan24\.json: exactly one of `chamfer` .* and `heldout` expected"):
         tables.build_table1({"scan24": scenes["scan24"]}, metrics, baseline, PUBLISHED, "x")
 
 

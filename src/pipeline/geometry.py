@@ -54,9 +54,11 @@ def decompose_projection(P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def compose_projection(K: np.ndarray, world_to_cam: np.ndarray) -> np.ndarray:
-    """4x4 padding of ``K [R | t]`` (the DTU ``world_mat`` form)."""
+    """4x4 padding of ``K [R | t]`` (the DTU ``world_mat`` form). The product is summed in a
+    fixed order rather than by BLAS, whose kernels (and last bits) differ between CPUs: the
+    same cameras give the same file bytes on any machine."""
     P = np.eye(4)
-    P[:3, :4] = K @ world_to_cam[:3, :4]
+    P[:3, :4] = (np.asarray(K, np.float64)[:, :, None] * np.asarray(world_to_cam, np.float64)[None, :3, :4]).sum(axis=1)
     return P
 
 

@@ -13,7 +13,6 @@ removes the worktree.
 """
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import subprocess
@@ -26,6 +25,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from pipeline.config import CONF_DIR, dump_params
 from pipeline.errors import ConfigError, InputError
+from pipeline.evaluation.record import SceneMetrics
 
 SWEEP_CONFIG = "sweep"
 # Files whose uncommitted changes a cell would silently not run (it checks out HEAD).
@@ -82,7 +82,7 @@ def run_cell(params: dict, scene: str, stage: str, out_dir: Path, repo: Path) ->
         if not metrics.is_file():  # a stage upstream of evaluate
             return {}
         shutil.copy(metrics, out_dir / "metrics.json")
-        return json.loads(metrics.read_text())
+        return SceneMetrics.read(metrics).to_json()
     finally:
         _run(["git", "worktree", "remove", "--force", str(cell)], repo)
 

@@ -8,7 +8,7 @@ import re
 from pathlib import Path
 
 from pipeline.errors import MissingInputError
-from pipeline.reports.read import read_json
+from pipeline.evaluation.record import SceneMetrics
 
 # What may exist, in the order shown: (file under reports/, title). Table I is required.
 TABLES = (("table1.md", "Table I"), ("table2.md", "Table II: ablation"))
@@ -25,9 +25,9 @@ def _fmt(value, nd: int) -> str:
     return "" if value is None else f"{value:.{nd}f}"
 
 
-def scene_section(name: str, entry: dict, metrics: dict, reports: Path) -> list[str]:
+def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) -> list[str]:
     """Figures, settings, picture and training curves of one scene."""
-    train, timing = metrics.get("train", {}), metrics.get("timing", {})
+    train, timing = metrics.train, metrics.timing
     gt = (entry or {}).get("gt")
     lines = [f"### {name}", "",
              f"Source `{(entry or {}).get('src', '?')}`; ground truth: {f'`{gt}`' if gt else 'none'}. "
@@ -35,21 +35,27 @@ def scene_section(name: str, entry: dict, metrics: dict, reports: Path) -> list[
              f"{train.get('backend', '?')} backend, {train.get('surfels_final', '?')} surfels at the end; training "
              f"took {_fmt(timing.get('wall_s'), 0)} s wall, {_fmt(timing.get('cpu_s'), 0)} s CPU, peak "
              f"{_fmt(timing.get('peak_rss_mb'), 0)} MB (`metrics/{name}.json`).", ""]
-    if "chamfer" in metrics:
-        c = metrics["chamfer"]
+    if metrics.chamfer is not None:
+        c = metrics.chamfer
         lines += ["| Chamfer of the mesh against the GT (mm) | value |", "| --- | ---: |",
-                  f"| accuracy (mesh -> GT, mean) | {_fmt(c.get('accuracy_mm'), 3)} |",
-                  f"| completeness (GT -> mesh, mean) | {_fmt(c.get('completeness_mm'), 3)} |",
-                  f"| overall = (accuracy + completeness) / 2 | {_fmt(c.get('overall_mm'), 3)} |", ""]
-        if c.get("valid") is False:
-            lines += [f"Evaluation flagged invalid: {'; '.join(c.get('problems') or [])}", ""]
-    if "heldout" in metrics:
-        h = metrics["heldout"]
-        lines += [f"| held-out views ({h.get('views')} views not used in training, "
-                  f"{'x'.join(map(str, h.get('size', [])))} px) | value |", "| --- | ---: |",
-                  f"| mask IoU of the surfels (alpha > 0.5) | {_fmt(h.get('iou_mean'), 3)} |",
-                  f"| mask IoU of the visual hull of the input masks (reference) | {_fmt(h.get('hull_iou_mean'), 3)} |",
-                  f"| PSNR over the mask (dB) | {_fmt(h.get('psnr_masked_db_mean'), 2)} |", ""]
+                  f"| accuracy (mesh -> GT, mean) | {_fmt(c.accuracy_mm, 3)} |",
+                  f"| completeness (GT -> mesh, mean) | {_fmt(c.completeness_mm, 3)} |",
+                  f"| overall = (accuracy + completeness) / 2 | {_fmt(c.overall_mm, 3)} |"]
+        for group, label in (("2+", "seen by >= 2 input views"), ("1", "seen by 1 input view"), ("0", "seen by none")):
+            r = (c.accuracy_by_views_seen or {}).get(group)
+            if r is not None:
+                lines.append(f"| accuracy on surface {label} ({100 * r['fraction']:.1f}% of the mesh) | "
+                             f"{_fmt(r['accuracy_mm'], 3)} |")
+        lines.append("")
+        if not c.valid:
+            lines += [f"Evaluation flagged invalid: {'; '.join(c.problems)}", ""]
+    if metrics.heldout is not None:
+        h = metrics.heldout
+        lines += [f"| held-out views ({h.views} views not used in training, "
+                  f"{'x'.join(map(str, h.size))} px) | value |", "| --- | ---: |",
+                  f"| mask IoU of the surfels (alpha > 0.5) | {_fmt(h.iou_mean, 3)} |",
+                  f"| mask IoU of the visual hull of the input masks (reference) | {_fmt(h.hull_iou_mean, 3)} |",
+                  f"| PSNR over the mask (dB) | {_fmt(h.psnr_masked_db_mean, 2)} |", ""]
     render = reports / "renders" / f"{name}.png"
     if render.is_file():
         lines += [f"![{name}: input view, rendered colour, rendered normal, mesh](renders/{name}.png)", "",
@@ -68,8 +74,7 @@ def index_markdown(reports_dir: str | Path, scenes: dict[str, dict], commit: str
     """The report page for the configured ``scenes`` (params ``scenes``); every scene needs
     ``reports_dir/metrics/NAME.json`` and ``reports_dir/table1.md`` must exist."""
     reports = Path(reports_dir)
-    metrics = {n: read_json(reports / "metrics" / f"{n}.json", f"metrics of scene {n}", "run the evaluate stage")
-               for n in scenes}
+    metrics = {n: SceneMetrics.read(reports / "metrics" / f"{n}.json", "run the score stage") for n in scenes}
     if not (reports / "table1.md").is_file():
         raise MissingInputError(f"{reports / 'table1.md'}: Table I not found (run `gcgs table1`)")
     lines = ["# Results", "",

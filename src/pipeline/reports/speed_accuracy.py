@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline import atomic
 from pipeline.errors import InputError
+from pipeline.evaluation.record import SceneMetrics
 
 COLUMNS = ("scene", "cell", "overall_mm", "accuracy_mm", "completeness_mm", "train_wall_s", "train_cpu_s",
            "peak_rss_mb", "iterations", "surfels_final", "init", "changes", "load_average_1min", "commit", "pareto")
@@ -33,19 +34,18 @@ def collect_cells(folder: str | Path, scenes: list[str], cells: list[str]) -> li
             path = Path(folder) / scene / f"{cell}.json"
             if not path.is_file():
                 continue
-            try:
-                m = json.loads(path.read_text())
-                ch, tm, tr, var = m["chamfer"], m["timing"], m["train"], m["variant"]
-            except (json.JSONDecodeError, KeyError) as exc:
-                raise InputError(f"{path}: not a variant report ({exc})") from exc
+            m = SceneMetrics.read(path, "run the speed-accuracy cells")
+            if m.chamfer is None or m.variant is None:
+                raise InputError(f"{path}: not a variant report with Chamfer figures")
+            ch, tm, tr, var = m.chamfer.to_json(), m.timing, m.train, m.variant
             changes = {k: var[k] for k in ("optimize", "loss", "mesh") if var.get(k)}
             scene_rows.append({
                 "scene": scene, "cell": cell, "overall_mm": ch["overall_mm"], "accuracy_mm": ch["accuracy_mm"],
                 "completeness_mm": ch["completeness_mm"], "train_wall_s": tm["wall_s"], "train_cpu_s": tm["cpu_s"],
                 "peak_rss_mb": tm["peak_rss_mb"], "iterations": tr["iterations"], "surfels_final": tr["surfels_final"],
                 "init": var["init"], "changes": json.dumps(changes, sort_keys=True),
-                "load_average_1min": m.get("provenance", {}).get("load_average_1min"),
-                "commit": m.get("provenance", {}).get("commit"),
+                "load_average_1min": (m.provenance or {}).get("load_average_1min"),
+                "commit": (m.provenance or {}).get("commit"),
             })
         if scene_rows:
             front = pareto_front([r["train_cpu_s"] for r in scene_rows], [r["overall_mm"] for r in scene_rows])

@@ -24,7 +24,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from pipeline.errors import MissingInputError
-from pipeline.reports.read import ReportError, figure, read_json
+from pipeline.evaluation.record import Chamfer, SceneMetrics
+from pipeline.reports.read import ReportError, read_json
 
 MEASURED = "measured here"
 PUBLISHED = "published"
@@ -151,29 +152,29 @@ def build_table1(scenes: dict[str, dict], metrics_dir: str | Path, baseline_dir:
     method, baseline, settings, heldout = {}, {}, {}, []
     for name in scenes:
         path = metrics_dir / f"{name}.json"
-        m = read_json(path, f"metrics of scene {name}", "run the evaluate stage")
-        settings[name] = m.get("train", {})
+        m = SceneMetrics.read(path, "run the score stage")
+        settings[name] = m.train
         if name in with_gt:
-            method[name] = figure(m, "chamfer.overall_mm", path)
-            if m["chamfer"].get("valid") is False:
+            if m.chamfer is None:
+                raise ReportError(f"{path}: scene {name} has ground truth, so `chamfer` figures are expected")
+            method[name] = m.chamfer.figures(str(path))["overall"]
+            if not m.chamfer.valid:
                 notes.append(f"{name}: the method's evaluation was flagged invalid ({path}: "
-                             f"{'; '.join(m['chamfer'].get('problems') or ['no reason given'])})")
+                             f"{'; '.join(m.chamfer.problems or ['no reason given'])})")
             bpath = baseline_dir / f"{name}.json"
             b = read_json(bpath, f"baseline report of scene {name}", "run the baseline stage")
             if b.get("evaluate", {}).get("metrics"):
-                baseline[name] = (figure(b, "evaluate.metrics.overall_mm", bpath), b.get("commit", "unknown"))
+                bc = Chamfer.parse(b["evaluate"]["metrics"], f"{bpath}: evaluate.metrics")
+                baseline[name] = (bc.figures(f"{bpath}: evaluate.metrics")["overall"], b.get("commit", "unknown"))
             else:
                 baseline[name] = (None, b.get("commit", "unknown"))
                 notes.append(f"{name}: no MVS + TSDF Chamfer in {bpath} (evaluate status "
                              f"{b.get('evaluate', {}).get('status', 'absent')!r})")
         else:
-            if "heldout" not in m:
+            h = m.heldout
+            if h is None:
                 raise ReportError(f"{path}: scene {name} has no ground truth, so `heldout` scores are expected")
-            h = m["heldout"]
-            psnr = h.get("psnr_masked_db_mean")
-            heldout.append(HeldoutRow(name, int(figure(m, "heldout.views", path)), tuple(h.get("size") or ()),
-                                      figure(m, "heldout.iou_mean", path), figure(m, "heldout.hull_iou_mean", path),
-                                      None if psnr is None else figure(m, "heldout.psnr_masked_db_mean", path)))
+            heldout.append(HeldoutRow(name, h.views, h.size, h.iou_mean, h.hull_iou_mean, h.psnr_masked_db_mean))
     rows = []
     if with_gt:
         cells = {n: method[n] for n in with_gt}

@@ -14,7 +14,8 @@ import io
 from pathlib import Path
 
 from pipeline.config import LossConfig, VariantConfig, merged_section
-from pipeline.reports.read import ReportError, covered_fraction, figure, read_json
+from pipeline.evaluation.record import Chamfer
+from pipeline.reports.read import ReportError, read_json
 
 MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
@@ -27,13 +28,12 @@ def _cell(path: Path, chamfer: str) -> dict:
     fraction) of the report at ``path``, whose Chamfer figures sit under the dotted key
     ``chamfer``."""
     data = read_json(path, "report", "run `dvc repro` first")
-    counts = data
     for k in chamfer.split("."):
-        counts = counts.get(k, {}) if isinstance(counts, dict) else {}
-    return {"overall": figure(data, f"{chamfer}.overall_mm", path),
-            "accuracy": figure(data, f"{chamfer}.accuracy_mm", path),
-            "completeness": figure(data, f"{chamfer}.completeness_mm", path),
-            "covered": covered_fraction(counts.get("counts", {}), path)}
+        if not isinstance(data, dict) or k not in data:
+            raise ReportError(f"{path}: missing `{chamfer}`")
+        data = data[k]
+    c = Chamfer.parse(data, f"{path}: {chamfer}")
+    return {**c.figures(f"{path}: {chamfer}"), "covered": c.covered_fraction(f"{path}: {chamfer}")}
 
 
 def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool | None]:

@@ -9,38 +9,36 @@ from pathlib import Path
 from pipeline.config import EvaluateConfig, OptimizeConfig
 from pipeline.data import dtu
 from pipeline.data.heldout import load_heldout
-from pipeline.evaluation import dtu_eval, gt
+from pipeline.evaluation import dtu_eval, gt, seen
 from pipeline.evaluation.heldout import heldout_scores
+from pipeline.evaluation.record import MESH_KEYS, TIMING_KEYS, TRAIN_KEYS, Chamfer, HeldOut, SceneMetrics
 from pipeline.optimize.surfels import read_surfel_ply
 
 HELDOUT_WIDTH = 200  # px; the bundled scan24 held-out views are stored at 200x150
-TRAIN_KEYS = ("iterations", "surfels_init", "surfels_final", "removed_degenerate", "preset", "backend", "masks")
-TIMING_KEYS = ("wall_s", "cpu_s", "s_per_iteration", "peak_rss_mb", "split_s")
 
 
 def scene_metrics(name: str, scene_dir: str | Path, src_dir: str | Path, gt_dir: str | Path | None,
                   surfels_dir: str | Path, mesh_dir: str | Path, train_timing: str | Path,
                   eval_cfg: EvaluateConfig, opt_cfg: OptimizeConfig, input_views: list[int], backend: str = "cpu",
-                  log=print) -> dict:
+                  log=print) -> SceneMetrics:
     scene_dir, surfels_dir, mesh_dir = Path(scene_dir), Path(surfels_dir), Path(mesh_dir)
     train = json.loads((surfels_dir / "train.json").read_text())
     timing = json.loads(Path(train_timing).read_text())
     mesh_facts = json.loads((mesh_dir / "mesh.json").read_text())
-    out: dict = {"scene": name, "train": {k: train[k] for k in TRAIN_KEYS},
-                 "timing": {k: timing[k] for k in TIMING_KEYS},
-                 "mesh": {k: mesh_facts[k] for k in ("triangles_kept", "components_kept", "views_virtual")}}
+    common = {"scene": name, "train": {k: train[k] for k in TRAIN_KEYS}, "timing": {k: timing[k] for k in TIMING_KEYS},
+              "mesh": {k: mesh_facts[k] for k in MESH_KEYS}}
     if gt_dir:
         scan_id = dtu.read_meta(scene_dir).get("scan_id")
         ground = gt.read_ground_truth(gt_dir, scan_id)
         cull = dtu_eval.load_cull_views(scene_dir, eval_cfg.cull_views, input_views)
         vertices, triangles = gt.read_mesh(mesh_dir / "mesh.ply")
         m = dtu_eval.evaluate_mesh(vertices, triangles, ground, eval_cfg, views=cull, log=log,
-                                   name=str(mesh_dir / "mesh.ply"))
-        out["chamfer"] = {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems",
-                                            "counts")}
+                                   name=str(mesh_dir / "mesh.ply"),
+                                   seen_views=seen.load_input_views(scene_dir, input_views))
+        return SceneMetrics(**common, chamfer=Chamfer.of(m))
     else:
         scene = dtu.load_scene(scene_dir, view_ids=None)
         heldout = load_heldout(src_dir, scene.view_ids, HELDOUT_WIDTH)
         params = read_surfel_ply(surfels_dir / "surfels.ply", scene.norm_to_world)
-        out["heldout"] = heldout_scores(params, scene, heldout, background=opt_cfg.background, backend=backend)
-    return out
+    h = heldout_scores(params, scene, heldout, background=opt_cfg.background, backend=backend)
+    return SceneMetrics(**common, heldout=HeldOut.parse(h, f"{name}: held-out scores"))

@@ -5,12 +5,14 @@ dense cloud (``mvs``), or the baseline stage's sparse SIFT cloud (``sfm``) or ra
 points in the bounding sphere (``random``)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 from pipeline import atomic
 from pipeline.config import (AblationConfig, ConfigError, EvaluateConfig, LossConfig, MeshConfig, OptimizeConfig,
                              VariantConfig, merged_section, section)
+from pipeline.evaluation.record import SceneMetrics
 from pipeline.runs.score import scene_metrics
 from pipeline.measure import measure
 from pipeline.runs.mesh import mesh_surfels_dir
@@ -30,7 +32,7 @@ def variant_configs(params: dict, variant: str) -> tuple[VariantConfig, Optimize
 
 def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, src_dir: str | Path,
                 gt_dir: str | Path | None, init_dirs: dict[str, str | Path], priors_dir: str | Path,
-                out_dir: str | Path, report: str | Path, input_views: list[int]) -> dict:
+                out_dir: str | Path, report: str | Path, input_views: list[int]) -> SceneMetrics:
     """Train, mesh and score ``variant`` on scene ``name``: writes ``out_dir/surfels`` and
     ``out_dir/mesh`` (same bytes for the same inputs), the metrics to ``report`` and the
     training time to ``report`` with suffix ``.train.json``. ``init_dirs`` maps each init
@@ -49,6 +51,7 @@ def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, sr
 
     metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, timing_path,
                             section(EvaluateConfig, "evaluate", params), opt, input_views, backend)
-    metrics["variant"] = {"name": variant, "init": v.init, "optimize": v.optimize, "loss": v.loss, "mesh": v.mesh}
-    atomic.write_text(report, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
+    metrics = dataclasses.replace(metrics, variant={"name": variant, "init": v.init, "optimize": v.optimize,
+                                                    "loss": v.loss, "mesh": v.mesh})
+    metrics.write(report)
     return metrics

@@ -32,7 +32,8 @@ def run(args: argparse.Namespace) -> int:
                             args.train_timing, section(EvaluateConfig, "evaluate", params), opt,
                             section(DataConfig, "data", params).views, resolve_backend(opt.backend))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    atomic.write_text(args.out, json.dumps(metrics, indent=2, sort_keys=True) + "\n")
-    summary = metrics.get("chamfer") or {k: metrics["heldout"][k] for k in ("iou_mean", "hull_iou_mean", "psnr_masked_db_mean")}
+    metrics.write(args.out)
+    m = metrics.to_json()
+    summary = {k: v for k, v in (m.get("chamfer") or m["heldout"]).items() if k not in ("per_view", "counts")}
     print(f"score {args.name}: {json.dumps(summary)} -> {args.out}")
     return 0

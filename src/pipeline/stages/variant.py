@@ -26,5 +26,5 @@ def run(args: argparse.Namespace) -> int:
     m = run_variant(args.name, args.variant, params, args.scene, entry.src, entry.gt,
                     {"mvs": args.init_dir, "sfm": f"{args.baseline_dir}/sfm", "random": f"{args.baseline_dir}/random"}, args.priors_dir, args.out_dir, args.report,
                     section(DataConfig, "data", params).views)
-    print(f"variant {args.variant} on {args.name}: {m.get('chamfer', {}).get('overall_mm')} mm overall -> {args.report}")
+    print(f"variant {args.variant} on {args.name}: {m.chamfer.overall_mm if m.chamfer else None} mm overall -> {args.report}")
     return 0

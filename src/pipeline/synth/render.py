@@ -4,6 +4,15 @@ Rays go through pixel centres at integer coordinates (see :mod:`pipeline.geometr
 their directions have camera-frame z = 1, so the hit parameter ``t`` *is* the camera depth
 (mm). A rigid change of frame keeps ``t``, which lets :class:`Renderer` cast in the scene's
 local frame, where its textures and normals live.
+
+The same scene gives the same bytes on any x86-64 machine: Open3D (Embree) picks other
+float32 code paths on other CPUs, so only *which* triangle a ray hits is taken from it; the
+hit distance, barycentrics and face normal are recomputed in float64 from that triangle
+(:func:`_refine_hits`, plain IEEE arithmetic). Numbers that come out of BLAS / LAPACK /
+numpy's SIMD functions (camera decompositions, the table frame, the shapes' vertices),
+whose last bits differ between CPUs, are rounded to a 32-bit mantissa (:func:`snap`) before
+anything is rendered from them: a difference of a few ulps then survives only when a value
+lies within those ulps of a rounding boundary (odds ~1e-7 per value).
 """
 from __future__ import annotations
 
@@ -22,6 +31,14 @@ AA_THRESHOLD = 0.1
 AA_OFFSETS = ((-0.125, -0.375), (0.375, -0.125), (0.125, 0.375), (-0.375, 0.125))
 # A surface point counts as seen when nothing lies on its ray more than this before it.
 VISIBILITY_TOL_MM = 0.05
+SNAP_BITS = 32  # mantissa bits kept by snap(): relative step 2^-32 ~ 2.3e-10
+
+
+def snap(x: np.ndarray | float, bits: int = SNAP_BITS) -> np.ndarray:
+    """``x`` (float64) rounded to a ``bits``-bit mantissa (ties to even): numbers that differ
+    in their last few bits between machines become equal (module docstring)."""
+    m, e = np.frexp(np.asarray(x, np.float64))
+    return np.ldexp(np.round(m * 2.0**bits) / 2.0**bits, e)
 
 
 def pixel_to_ray(K: np.ndarray, world_to_cam: np.ndarray, frame_to_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -35,7 +52,7 @@ def pixel_to_ray(K: np.ndarray, world_to_cam: np.ndarray, frame_to_world: np.nda
         Rf = frame_to_world[:3, :3]
         A = Rf.T @ A
         origin = Rf.T @ (origin - frame_to_world[:3, 3])
-    return origin, A
+    return snap(origin), snap(A)
 
 
 @numba.njit(cache=True, parallel=True)
@@ -82,6 +99,39 @@ def raycast_depth(vertices_mm: np.ndarray, triangles: np.ndarray, K: np.ndarray,
     view, 0 where the pixel-centre ray hits nothing (the project's "no depth", see
     :class:`pipeline.init.io.DepthMap`)."""
     return MeshCaster(vertices_mm, triangles).cast(K, world_to_cam, height, width).depth_mm
+
+
+@numba.njit(cache=True, parallel=True)
+def _refine_hits(rays, gid, prim, t_caster, tri_offset, triangles, vertices):
+    """Hit distance ``t``, barycentrics ``(u, v)`` (weights of vertices 1 and 2) and face
+    normal ``cross(b - a, c - a)`` of each ray's hit triangle, in float64 from the
+    triangle's vertices (Moller-Trumbore), so they do not depend on the ray caster's
+    float32 code path. ``t_caster`` is kept where the triangle is degenerate for the ray."""
+    n = rays.shape[0]
+    t = np.full(n, np.inf)
+    uv = np.zeros((n, 2))
+    normal = np.zeros((n, 3))
+    for i in numba.prange(n):
+        g = gid[i]
+        if g < 0:
+            continue
+        f = tri_offset[g] + prim[i]
+        a, b, c = vertices[triangles[f, 0]], vertices[triangles[f, 1]], vertices[triangles[f, 2]]
+        e1x, e1y, e1z = b[0] - a[0], b[1] - a[1], b[2] - a[2]
+        e2x, e2y, e2z = c[0] - a[0], c[1] - a[1], c[2] - a[2]
+        dx, dy, dz = np.float64(rays[i, 3]), np.float64(rays[i, 4]), np.float64(rays[i, 5])
+        px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+        det = e1x * px + e1y * py + e1z * pz
+        normal[i, 0], normal[i, 1], normal[i, 2] = e1y * e2z - e1z * e2y, e1z * e2x - e1x * e2z, e1x * e2y - e1y * e2x
+        if det == 0.0:
+            t[i] = t_caster[i]
+            continue
+        sx, sy, sz = np.float64(rays[i, 0]) - a[0], np.float64(rays[i, 1]) - a[1], np.float64(rays[i, 2]) - a[2]
+        qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+        uv[i, 0] = (sx * px + sy * py + sz * pz) / det
+        uv[i, 1] = (dx * qx + dy * qy + dz * qz) / det
+        t[i] = (e2x * qx + e2y * qy + e2z * qz) / det
+    return t, uv, normal
 
 
 @numba.njit(cache=True, parallel=True)
@@ -134,13 +184,14 @@ class Renderer:
         h = ground_half_size_mm
         ground = shapes.Part(np.array([[-h, -h, 0.0], [h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0]]),
                              np.array([[0, 1, 2], [0, 2, 3]]), "ground", smooth=False)
-        tris, normals, offsets, n_vert, n_tri = [], [], [], 0, 0
+        tris, normals, verts, offsets, n_vert, n_tri = [], [], [], [], 0, 0
         for part in [*scene.parts, ground]:
+            verts.append(part.vertices)
             gid = self.raycaster.add_triangles(part.vertices.astype(np.float32), part.triangles.astype(np.uint32))
             assert gid == len(offsets)  # Open3D numbers geometries 0, 1, ... in order
             mesh = o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(part.vertices),
                                              o3d.utility.Vector3iVector(part.triangles))
-            normals.append(np.asarray(mesh.compute_vertex_normals().vertex_normals))
+            normals.append(snap(np.asarray(mesh.compute_vertex_normals().vertex_normals)))
             tris.append(part.triangles + n_vert)
             offsets.append(n_tri)
             n_vert += len(part.vertices)
@@ -148,6 +199,7 @@ class Renderer:
         self.object_ids = list(range(len(scene.parts)))
         self.ground_id = len(scene.parts)
         parts = [*scene.parts, ground]
+        self._vertices = np.ascontiguousarray(np.concatenate(verts), np.float64)
         # Object part k is textured with seed + k, the ground with the seed.
         seeds = [scene.seed + k for k in range(len(scene.parts))] + [scene.seed]
         self._kernel_args = (
@@ -166,14 +218,12 @@ class Renderer:
 
     def _trace(self, rays: np.ndarray) -> dict[str, np.ndarray]:
         ans = self.raycaster.cast_rays(o3d.core.Tensor(rays))
-        t = ans["t_hit"].numpy()
-        return {
-            "t": t,
-            "geometry": np.where(np.isfinite(t), ans["geometry_ids"].numpy().astype(np.int64), -1),
-            "primitive": ans["primitive_ids"].numpy(),
-            "uv": ans["primitive_uvs"].numpy(),
-            "face_normal": ans["primitive_normals"].numpy(),
-        }
+        t_caster = ans["t_hit"].numpy()
+        geometry = np.where(np.isfinite(t_caster), ans["geometry_ids"].numpy().astype(np.int64), -1)
+        primitive = ans["primitive_ids"].numpy().astype(np.int64)
+        t, uv, face_normal = _refine_hits(rays, geometry, primitive, t_caster.astype(np.float64),
+                                          self._kernel_args[2], self._kernel_args[0], self._vertices)
+        return {"t": t, "geometry": geometry, "primitive": primitive, "uv": uv, "face_normal": face_normal}
 
     def _shade_samples(self, rays: np.ndarray, tr: dict[str, np.ndarray]) -> np.ndarray:
         return _shade_kernel(rays, tr["t"], tr["geometry"], tr["primitive"], tr["uv"], tr["face_normal"],
@@ -198,7 +248,7 @@ class Renderer:
 
     @staticmethod
     def points_local(hits: dict[str, np.ndarray], where: np.ndarray) -> np.ndarray:
-        """Hit points ``(N, 3)`` (scene's local frame, mm, float32) of the pixels ``where``
+        """Hit points ``(N, 3)`` (scene's local frame, mm, float64) of the pixels ``where``
         (a bool ``(H, W)`` mask of hit pixels)."""
         rays, t = hits["_rays"][where.ravel()], hits["_trace"]["t"][where.ravel()]
         return rays[:, :3] + t[:, None] * rays[:, 3:]

@@ -5,6 +5,7 @@ in the DTU world frame (mm) of the camera source by :func:`table_frame`.
 """
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -16,7 +17,7 @@ from pipeline import geometry
 from pipeline.atomic import atomic_dir
 from pipeline.data import dtu
 from pipeline.synth import shapes
-from pipeline.synth.render import Renderer
+from pipeline.synth.render import Renderer, snap
 
 GROUND_BELOW_AIM_MM = 60.0  # the table lies this far below the point the cameras aim at
 GT_GROUND_MARGIN_MM = 40.0  # GT keeps the table within this distance of the object footprint
@@ -56,7 +57,10 @@ class SynthScene:
         return self.local_to_world[:3, 2]
 
     def to_world(self, points_local: np.ndarray) -> np.ndarray:
-        return points_local @ self.local_to_world[:3, :3].T + self.local_to_world[:3, 3]
+        # Summed in a fixed order, not by BLAS: the GT files get the same bytes on any CPU.
+        R, t = self.local_to_world[:3, :3], self.local_to_world[:3, 3]
+        p = np.asarray(points_local, np.float64)
+        return p[:, 0:1] * R[:, 0] + p[:, 1:2] * R[:, 1] + p[:, 2:3] * R[:, 2] + t
 
     def to_local(self, points_world: np.ndarray) -> np.ndarray:
         return (points_world - self.local_to_world[:3, 3]) @ self.local_to_world[:3, :3]
@@ -117,11 +121,12 @@ def build_scene(name: str, seed: int, cams: dtu.DTUCameras) -> SynthScene:
     if name not in SCENES:
         raise ValueError(f"unknown synthetic scene {name!r}; choose from {', '.join(SCENES)}")
     scan_id, builder, _ = SCENES[name]
-    T = table_frame(cams)
+    T = snap(table_frame(cams))  # snapped: the same scene on every CPU (render module docstring)
     # Light from above and from the cameras' side, fixed in the world: Lambertian shading
     # then gives a surface point the same colour in every view.
     light = T[:3, :3] @ np.array([0.5, 0.3, 1.0])
-    return SynthScene(name, scan_id, seed, builder(seed), T, light / np.linalg.norm(light))
+    parts = [dataclasses.replace(p, vertices=snap(p.vertices)) for p in builder(seed)]
+    return SynthScene(name, scan_id, seed, parts, T, snap(light / np.linalg.norm(light)))
 
 
 def visible_gt_mesh(scene: SynthScene, renderer: Renderer, cams: dtu.DTUCameras,
@@ -165,7 +170,10 @@ def write_synth_scene(
         src_w, src_h = dtu.stored_image_size(cameras_dir)  # the size the cameras are for
         scene = build_scene(name, seed, cams)
         renderer = Renderer(scene)
-        K = {v: geometry.scale_intrinsics(cams.K[v], width / src_w, height / src_h) for v in cams.ids}
+        # The cameras as written (snapped: the decomposition's last bits differ between CPUs).
+        K = {v: snap(geometry.scale_intrinsics(cams.K[v], width / src_w, height / src_h)) for v in cams.ids}
+        cams = dtu.DTUCameras(K={v: snap(cams.K[v]) for v in cams.ids}, world_to_cam={v: snap(cams.world_to_cam[v]) for v in cams.ids},
+                              norm_to_world=snap(cams.norm_to_world), path=cams.path)
         images, masks = {}, {}
         for v in cams.ids:
             hits = renderer.cast(K[v], cams.world_to_cam[v], width, height)
