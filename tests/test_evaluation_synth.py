@@ -29,3 +29,47 @@ def test_synth_then_evaluate_offset_meshes(tmp_path, bundled_scan):
         assert m["accuracy_mm"] == pytest.approx(delta, rel=0.1)
         assert m["completeness_mm"] == pytest.approx(delta, rel=0.1)
         assert m["overall_mm"] == pytest.approx((m["accuracy_mm"] + m["completeness_mm"]) / 2)
+
+
+# --- accuracy split by the input views that see the surface (issue 19) ---------------------------
+
+def _looking_down(x_mm: float) -> np.ndarray:
+    """World-to-camera of a camera at (x, 0, 500) mm looking straight down (-z)."""
+    T = np.diag([1.0, -1.0, -1.0, 1.0])
+    T[:3, 3] = [-x_mm, 0.0, 500.0]
+    return T
+
+
+def _seen_fixture():
+    from pipeline.evaluation.seen import InputView
+
+    K = np.array([[250.0, 0, 49.5], [0, 250.0, 49.5], [0, 0, 1]])  # +-100 mm wide at the ground
+    views = [InputView(K, _looking_down(x), 100, 100) for x in (-30.0, 0.0, 30.0)]
+    ground = np.array([[-300, -300, 0], [300, -300, 0], [300, 300, 0], [-300, 300, 0.0]])
+    # A small square at z = 250 on the ray from the camera at x = 30 to (-45, 0, 0) only.
+    occluder = np.array([[-10, -3, 250], [-5, -3, 250], [-5, 3, 250], [-10, 3, 250.0]])
+    V = np.concatenate([ground, occluder])
+    F = np.array([[0, 1, 2], [0, 2, 3], [4, 5, 6], [4, 6, 7]])
+    return V, F, views
+
+
+def test_views_seeing_counts_image_bounds_and_occlusion():
+    from pipeline.evaluation.seen import views_seeing
+
+    V, F, views = _seen_fixture()
+    points = np.array([[0, 0, 0], [-45, 0, 0], [120, 0, 0], [200, 0, 0.0]])
+    # all three; the occluder hides it from x = 30; only x = 30 has it in its image; none
+    np.testing.assert_array_equal(views_seeing(points, V, F, views), [3, 2, 1, 0])
+
+
+def test_accuracy_by_views_seen_groups_by_the_nearest_gt_point():
+    from pipeline.evaluation.seen import accuracy_by_views_seen
+
+    V, F, views = _seen_fixture()
+    gt_points = np.array([[0, 0, 0], [120, 0, 0], [200, 0, 0.0]])
+    data = gt_points + np.array([[0, 0, 0.3], [0, 0, 0.5], [0, 0, 0.7]])
+    data = np.concatenate([data, [[0.2, 0, 0], [200, 0, 30.0]]])  # one more "2+"; one beyond max_dist
+    r = accuracy_by_views_seen(data, gt_points, V, F, views, max_dist_mm=20.0)
+    assert r["2+"]["fraction"] == pytest.approx(0.4) and r["2+"]["accuracy_mm"] == pytest.approx(0.25)
+    assert r["1"]["fraction"] == pytest.approx(0.2) and r["1"]["accuracy_mm"] == pytest.approx(0.5)
+    assert r["0"]["fraction"] == pytest.approx(0.4) and r["0"]["accuracy_mm"] == pytest.approx(0.7)

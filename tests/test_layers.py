@@ -10,7 +10,7 @@ ROOT = Path(__file__).resolve().parents[1] / "src" / "pipeline"
 
 # Lowest first; a package may import from any earlier layer.
 LAYERS = [
-    {"errors", "npz", "measure", "losses"},
+    {"errors", "npz", "measure", "losses", "mvphoto"},
     {"config", "geometry", "atomic", "onnx_models", "rasterizer"},
     {"ply"},
     {"data"},

@@ -238,3 +238,29 @@ def test_split_factor_sets_the_children_scale():
     ops.split(params, opt, state, torch.tensor([False, True, False, False]), 2.5, torch.Generator().manual_seed(0))
     assert params.num == 5 and len(state.count) == 5
     torch.testing.assert_close(torch.exp(params.log_scales[-2:].detach()), (parent / 2.5).expand(2, 2))
+
+
+def test_mvs_depth_loss_matches_a_loop_and_gradcheck():
+    rng = np.random.default_rng(1)
+    depth = torch.tensor(2.0 + rng.random((5, 6)), dtype=torch.float64, requires_grad=True)
+    mvs = torch.tensor(np.where(rng.random((5, 6)) < 0.3, 0.0, 2.0 + rng.random((5, 6))), dtype=torch.float64)
+    valid = (mvs > 0) & torch.tensor(rng.random((5, 6)) < 0.8)
+    ref = [abs(float(depth.detach()[y, x]) - float(mvs[y, x])) / float(mvs[y, x])
+           for y in range(5) for x in range(6) if valid[y, x]]
+    assert float(terms.mvs_depth_loss(depth, mvs, valid)) == pytest.approx(sum(ref) / len(ref), rel=1e-12)
+    assert torch.autograd.gradcheck(lambda d: terms.mvs_depth_loss(d + 1e-3, mvs, valid), (depth,))
+    assert float(terms.mvs_depth_loss(mvs.clone().requires_grad_(True), mvs, valid)) == 0.0
+    none = terms.mvs_depth_loss(depth, mvs, torch.zeros_like(valid))
+    assert float(none) == 0.0 and none.requires_grad
+
+
+def test_mvs_depth_is_downscaled_without_averaging_across_edges_or_holes():
+    from pipeline.optimize.views import _depth_at
+
+    d = np.full((4, 8), 3.0)
+    d[:, 6:] = 5.0  # an edge between footprints (columns 5|6) keeps both sides
+    d[:, 5] = 5.0  # ... and this one inside the third footprint (columns 4-5)
+    d[0, 0] = 0.0  # a hole in the first footprint
+    out = _depth_at(d, 4, 2)
+    np.testing.assert_allclose(out, [[0.0, 3.0, 0.0, 5.0], [3.0, 3.0, 0.0, 5.0]])
+    np.testing.assert_array_equal(_depth_at(d, 8, 4), d)  # full size: unchanged

@@ -36,7 +36,8 @@ from scipy.spatial import cKDTree
 
 from pipeline import atomic, geometry
 from pipeline.config import EvaluateConfig
-from pipeline.evaluation.gt import GroundTruth
+from pipeline.evaluation.gt import GroundTruth, read_mesh
+from pipeline.evaluation.seen import InputView, accuracy_by_views_seen
 from pipeline.evaluation.sampling import check_mesh, radius_downsample, sample_mesh
 
 # The script's masks are 1600 px wide; its 24 px dilation is scaled to other widths.
@@ -160,12 +161,15 @@ def evaluate_mesh(
     seed: int = 0,
     log: Callable[[str], None] | None = print,
     name: str = "mesh",
+    seen_views: list[InputView] | None = None,
 ) -> dict:
     """DTU Chamfer distance of a mesh in world millimetres against ``gt``.
 
     ``views``: the culling views (``None`` or empty: no culling). ``seed`` fixes the
     downsampling order (synthetic GT points are thinned in an order derived from their
-    own seed, never this one: see ``gt.GT_SEED_PURPOSE``). ``log`` receives progress lines (``None``: silent). Raises
+    own seed, never this one: see ``gt.GT_SEED_PURPOSE``). ``log`` receives progress lines (``None``: silent).
+    ``seen_views``: the input cameras; with a GT mesh (synthetic scenes) the result also has
+    ``accuracy_by_views_seen`` (:func:`pipeline.evaluation.seen.accuracy_by_views_seen`). Raises
     :class:`~pipeline.evaluation.sampling.MeshError` for an empty or degenerate mesh.
 
     Returns a JSON-ready dict: ``accuracy_mm``, ``completeness_mm``, ``overall_mm`` (NaN when
@@ -219,6 +223,13 @@ def evaluate_mesh(
     d_acc = _nn_distances(data_in_obs, gt.points_mm, max_dist)
     acc, n_acc, out_acc = _mean_below(d_acc, max_dist)
     say(f"[evaluate] accuracy: {len(d_acc)} data points -> {len(gt.points_mm)} GT points ({lap('accuracy'):.1f} s)")
+    by_seen = None
+    if seen_views and (gt.root / "mesh.ply").is_file():
+        by_seen = accuracy_by_views_seen(data_in_obs, gt.points_mm, *read_mesh(gt.root / "mesh.ply"), seen_views,
+                                         max_dist)
+        say("[evaluate] accuracy by input views seeing the surface: " + ", ".join(
+            f"{g}: {100 * r['fraction']:.1f}% at {r['accuracy_mm']:.3f} mm" for g, r in by_seen.items())
+            + f" ({lap('seen'):.1f} s)")
     gt_above = gt.points_mm[gt.above_plane(gt.points_mm)]
     d_comp = _nn_distances(gt_above, data_in, max_dist)
     comp, n_comp, out_comp = _mean_below(d_comp, max_dist)
@@ -247,6 +258,7 @@ def evaluate_mesh(
         "scan_id": gt.scan_id,
         "counts": counts,
         "fraction_beyond_max_dist": {"accuracy": out_acc, "completeness": out_comp},
+        **({"accuracy_by_views_seen": by_seen} if by_seen is not None else {}),
         "timings_s": timings,
         "config": {**dataclasses.asdict(cfg), "seed": seed,
                    "cull_view_ids": [v.view_id for v in views] if views else []},

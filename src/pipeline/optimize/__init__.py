@@ -58,9 +58,12 @@ def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where:
                        where=where)
 
 
-def make_views(scene: Scene, priors_dir: str | Path | None, cfg: OptimizeConfig, loss: LossConfig) -> TrainViews:
+def make_views(scene: Scene, priors_dir: str | Path | None, cfg: OptimizeConfig, loss: LossConfig,
+               mvs_depth_dir: str | Path | None = None) -> TrainViews:
+    """The training views; ``mvs_depth_dir`` (the init's ``depth/``) is read when L_mvs is on."""
     return TrainViews(scene, priors_dir, use_masks=uses_masks(scene, cfg), want_normals=loss.lambda_nor > 0,
-                      want_features=loss.lambda_gcf > 0, near=cfg.near, far=cfg.far)
+                      want_features=loss.lambda_gcf > 0, near=cfg.near, far=cfg.far,
+                      mvs_depth_dir=mvs_depth_dir if loss.lambda_mvs > 0 else None)
 
 
 def budget_downsample(pts: np.ndarray, normals: np.ndarray, colors: np.ndarray, voxel: float,

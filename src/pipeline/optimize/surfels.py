@@ -171,6 +171,46 @@ def write_surfel_ply(path: str | Path, params: SurfelParams, norm_to_world: np.n
     return path
 
 
+# A viewer of 3DGS files draws 3D Gaussians; a surfel is flat, so its third axis (the
+# normal) gets this fraction of its smaller in-plane scale: thin enough to look like the
+# disc, relative so it means the same in any unit and stays far from float32 underflow in
+# a viewer's covariance (gsplat's 2DGS trainer keeps an unused third log-scale instead).
+THICKNESS_RATIO = 1e-3
+
+
+def splats_3dgs_attribute_names(num_rest: int) -> list[str]:
+    """The 3DGS ``point_cloud.ply`` layout: as :func:`ply_attribute_names` with ``scale_2``."""
+    names = ply_attribute_names(num_rest)
+    i = names.index("scale_1") + 1
+    return names[:i] + ["scale_2"] + names[i:]
+
+
+def write_splats_3dgs_ply(path: str | Path, params: SurfelParams, norm_to_world: np.ndarray) -> Path:
+    """Write surfels for 3DGS viewers (atomic): the standard layout
+    (:func:`splats_3dgs_attribute_names`; log scales, logit opacity, wxyz unit quaternions,
+    SH channel-major), in the world frame and units, each surfel a Gaussian whose third
+    log-scale (along its normal) is ``log(THICKNESS_RATIO)`` below its smaller one."""
+    S = np.asarray(norm_to_world, np.float64)
+    with torch.no_grad():
+        means = params.means.double().numpy() @ S[:3, :3].T + S[:3, 3]
+        log_scales = params.log_scales.double().numpy() + math.log(float(S[0, 0]))
+        quats = torch.nn.functional.normalize(params.quats.double(), dim=1).numpy()
+        dc = params.sh_dc.double().numpy().reshape(params.num, 3)
+        rest = params.sh_rest.double().numpy().transpose(0, 2, 1).reshape(params.num, -1)
+        opac = params.opacity_logits.double().numpy()[:, None]
+    from pipeline.rasterizer.project import quat_to_rotmat
+
+    normals = quat_to_rotmat(torch.from_numpy(quats))[:, :, 2].numpy()
+    thick = log_scales.min(axis=1, keepdims=True) + math.log(THICKNESS_RATIO)
+    data = np.concatenate([means, normals, dc, rest, opac, log_scales, thick, quats], axis=1).astype("<f4")
+    names = splats_3dgs_attribute_names(params.sh_rest.shape[1])
+    header = ("ply\nformat binary_little_endian 1.0\ncomment gcgs surfels as 3D Gaussians (3DGS layout): world frame\n"
+              f"element vertex {params.num}\n" + "".join(f"property float {n}\n" for n in names) + "end_header\n")
+    path = Path(path)
+    atomic.write_bytes(path, header.encode("ascii") + data.tobytes())
+    return path
+
+
 def read_surfel_ply(path: str | Path, norm_to_world: np.ndarray, dtype=torch.float32) -> SurfelParams:
     """Read a surfel PLY written by :func:`write_surfel_ply` back into the normalised frame."""
     path = Path(path)

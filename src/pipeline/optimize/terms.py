@@ -68,6 +68,15 @@ def depth_normal_loss(normal_render: torch.Tensor, depth: torch.Tensor, alpha: t
     return (1.0 - (normal_render * n_d).sum(0)).mean()
 
 
+def mvs_depth_loss(depth: torch.Tensor, mvs_depth: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """Mean ``|depth - mvs_depth| / mvs_depth`` over ``valid`` pixels (all ``(H, W)``; 0 when
+    none is valid): relative, so it means the same at every resolution and scale."""
+    if not bool(valid.any()):
+        return depth.sum() * 0.0
+    d, m = depth[valid], mvs_depth[valid].to(depth)
+    return ((d - m).abs() / m).mean()
+
+
 def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean ``|alpha - mask|``: background pixels pull alpha to 0, object pixels to 1."""
     return (alpha - mask.to(alpha)).abs().mean()

@@ -2,7 +2,7 @@
 in the normalised frame with
 
     L = L_photo + lambda_gcf L_gcf + lambda_nor (lambda_nc L_nc + lambda_ngc L_ngc)
-        + lambda_d L_d + lambda_dn L_dn + lambda_mask L_mask
+        + lambda_mvs L_mvs + lambda_d L_d + lambda_dn L_dn + lambda_mask L_mask
 
 (GCGS Eq. 13 plus 2DGS's depth-normal consistency L_dn and, where masks are used, the
 alpha-vs-mask term). One input view per iteration, in a seeded shuffled order; that view
@@ -42,7 +42,7 @@ from pipeline.rasterizer import rasterize, resolve_backend
 
 MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
 MAX_SCALE = 10.0  # x scene_extent; above, a surfel covers everything (degenerate)
-TIMED = ("render", "photo", "gcf", "nor", "dn", "dist", "mask", "backward", "step", "densify")
+TIMED = ("render", "photo", "gcf", "mv", "nor", "mvs", "dn", "dist", "mask", "backward", "step", "densify")
 
 
 class NonFiniteLossError(RuntimeError):
@@ -102,6 +102,10 @@ class Trainer:
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
         self.queue: list[int] = []
+        # Each view's last rendered depth (detached) and its intrinsics: the forward-backward
+        # check of L_mv reads the source views' depth from when they were last rendered
+        # (at most num_views - 1 iterations old) instead of rendering them again.
+        self.last_depth: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         self.it = 0
         self.removed_degenerate = 0
         self.seconds: dict[str, float] = defaultdict(float)
@@ -116,6 +120,7 @@ class Trainer:
             "generator": self.generator.get_state(), "rng": self.rng.bit_generator.state,
             "queue": list(self.queue), "removed_degenerate": self.removed_degenerate,
             "seconds": dict(self.seconds), "spent": dict(self.spent),
+            "last_depth": {k: (d.clone(), K.clone()) for k, (d, K) in self.last_depth.items()},
         }
 
     def load_state_dict(self, state: dict) -> None:
@@ -133,6 +138,7 @@ class Trainer:
         self.removed_degenerate = int(state["removed_degenerate"])
         self.seconds = defaultdict(float, state["seconds"])
         self.spent = dict(state["spent"])
+        self.last_depth = dict(state.get("last_depth", {}))
 
     def save_checkpoint(self, path: Path) -> None:
         with atomic.atomic_file(path) as tmp:
@@ -168,6 +174,8 @@ class Trainer:
         h, w = v.size
         degree = min(cfg.sh_degree, it // cfg.sh_every)
         out = rasterize(self.params.surfels(degree), v.camera, self.backend)
+        if self.loss.lambda_mv > 0 or self.loss.lambda_mvgeo > 0:
+            self.last_depth[i] = (out.depth_median.detach() * (out.alpha.detach() > cfg.surface_alpha), v.K)
         rgb = out.features.permute(2, 0, 1) + cfg.background * (1.0 - out.alpha)
         target = v.image
         if v.mask is not None:
@@ -191,9 +199,6 @@ class Trainer:
             self.seconds[name] += t3 - t2  # each term's own time: the generator computes it on demand
             t2 = t3
         values["total"] = total.detach()
-        if not bool(torch.isfinite(total)):
-            raise NonFiniteLossError(f"loss term total is {float(total.detach())} at iteration {it} "
-                                     f"(view {v.view_id}, {self.params.num} surfels); no model written")
 
         t = clock()
         total.backward()
@@ -247,10 +252,19 @@ class Trainer:
             yield "gcf", gcf_loss(out.depth_expected, v.K, v.world_to_cam, v.features, sources, valid=points,
                                   ref_image_size=v.feature_image_size,
                                   max_dissimilarity=lw.gcf_max_dissimilarity), lw.lambda_gcf
+        if (lw.lambda_mv > 0 or lw.lambda_mvgeo > 0) and it >= cfg.start.mv:
+            mv = self._multiview(i, v, out, surface)
+            yield "mv", mv["photo"], lw.lambda_mv
+            yield "mvgeo", mv["geo"], lw.lambda_mvgeo
+            yield "mv_valid", mv["valid_fraction"], None
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
             n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
             l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)
             yield "nor", lw.lambda_nc * l_nc + lw.lambda_ngc * l_ngc, lw.lambda_nor
+        if lw.lambda_mvs > 0 and v.mvs_depth is not None:
+            t = it / max(cfg.iterations - 1, 1)
+            yield "mvs", terms.mvs_depth_loss(out.depth_median, v.mvs_depth, surface & (v.mvs_depth > 0)), \
+                lw.lambda_mvs * (1.0 - t * (1.0 - lw.mvs_final))
         if lw.lambda_dn > 0 and it >= cfg.start.dn:
             depth = out.depth_median if cfg.dn_depth == "median" else out.depth_expected
             yield "dn", terms.depth_normal_loss(out.normal_cam.permute(2, 0, 1), depth, out.alpha, v.K), lw.lambda_dn
@@ -258,6 +272,33 @@ class Trainer:
             yield "dist", out.distortion.mean(), lw.lambda_d
         if lw.lambda_mask > 0 and v.mask is not None:
             yield "mask", terms.mask_loss(out.alpha, v.mask), lw.lambda_mask
+
+    def _multiview(self, i: int, v, out, surface: torch.Tensor) -> dict[str, torch.Tensor]:
+        """L_mv's photometric and geometric parts on a seeded random subset of the surface
+        pixels of view ``i``, the other input views as sources (:mod:`pipeline.mvphoto`)."""
+        from pipeline.mvphoto import SourceView, multiview_consistency
+
+        cfg, lw, views = self.cfg, self.loss, self.views
+        ys, xs = torch.nonzero(surface, as_tuple=True)
+        if 0 < cfg.mv_max_points < len(xs):
+            pick = torch.randperm(len(xs), generator=self.generator)[: cfg.mv_max_points]
+            ys, xs = ys[pick], xs[pick]
+        S = views.scene
+        K_full = torch.from_numpy(S.K[i]).float()
+        ref_from = torch.from_numpy(np.linalg.inv(views.w2c_norm[i]))
+        sources = []
+        for j in range(views.num_views):
+            if j == i:
+                continue
+            w2c_j = torch.from_numpy(views.w2c_norm[j])
+            depth_j, K_j = self.last_depth.get(j, (None, None))
+            sources.append(SourceView(K_full=torch.from_numpy(S.K[j]).float(),
+                                      ref_to_src=(w2c_j @ ref_from).float(), grey_full=views.grey_full[j],
+                                      depth_train=depth_j, K_train=K_j))
+        result = multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
+                                       views.grey_full[i], sources, patch=lw.mv_patch,
+                                       min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px)
+        return result
 
     def _degenerate(self) -> torch.Tensor:
         """Surfels with non-finite parameters or gradients, or a degenerate scale. The

@@ -11,6 +11,7 @@ import torch
 
 from pipeline import geometry
 from pipeline.data.scene import Scene, SceneError
+from pipeline.init.io import read_depth
 from pipeline.priors.io import features_path, normals_path, read_features, read_normals
 from pipeline.rasterizer import Camera
 
@@ -29,6 +30,7 @@ class ViewData:
     normal_valid: torch.Tensor | None  # (h, w) bool
     features: torch.Tensor | None  # (C, h', w'), resolution independent
     feature_image_size: tuple[float, float] | None  # the (H, W) of this resolution the features refer to
+    mvs_depth: torch.Tensor | None = None  # (h, w) camera z of the init's MVS depth, normalised units; 0 = none
 
     @property
     def size(self) -> tuple[int, int]:
@@ -39,6 +41,22 @@ def _area(img: np.ndarray, w: int, h: int) -> np.ndarray:
     return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA) if img.shape[:2] != (h, w) else img
 
 
+MAX_REL_DEPTH_SPREAD = 0.005  # a coarse pixel whose footprint's depths spread more (an edge) gets none
+
+
+def _depth_at(depth: np.ndarray, w: int, h: int) -> np.ndarray:
+    """``depth`` (0 = none) area-averaged to ``w x h``; a coarse pixel has depth only where
+    its whole footprint had, with a relative spread below ``MAX_REL_DEPTH_SPREAD`` (no
+    averaging across depth edges)."""
+    if depth.shape == (h, w):
+        return depth
+    valid = (depth > 0).astype(np.float64)
+    mean = _area(depth, w, h)
+    spread = np.sqrt(np.maximum(_area(depth * depth, w, h) - mean * mean, 0.0))
+    ok = (_area(valid, w, h) > 1 - 1e-6) & (spread < MAX_REL_DEPTH_SPREAD * np.maximum(mean, 1e-12))
+    return np.where(ok, mean, 0.0)
+
+
 class TrainViews:
     """The input views of a scene with their priors; :meth:`at` gives a view at a
     downscale factor (area-averaged images, intrinsics rescaled with the integer pixel
@@ -46,7 +64,7 @@ class TrainViews:
     whole footprint was)."""
 
     def __init__(self, scene: Scene, priors_dir: str | Path | None, use_masks: bool, want_normals: bool,
-                 want_features: bool, near: float, far: float):
+                 want_features: bool, near: float, far: float, mvs_depth_dir: str | Path | None = None):
         self.scene = scene
         self.use_masks = use_masks
         self.near, self.far = near, far
@@ -68,6 +86,20 @@ class TrainViews:
                 if not p.is_file():
                     raise SceneError(f"{p}: missing feature map of view {v} (run the priors stage with loss.lambda_gcf > 0)")
                 self.features[i] = read_features(p)
+        # Full-resolution grey images (ITU-R 601 luma) for the multi-view NCC term.
+        self.grey_full = [torch.from_numpy(np.ascontiguousarray(img @ np.array([0.299, 0.587, 0.114]))).float()
+                          for img in scene.images]
+        self.mvs_depth: list = [None] * scene.num_views
+        if mvs_depth_dir is not None:
+            for i, v in enumerate(scene.view_ids):
+                p = Path(mvs_depth_dir) / f"{v:03d}.npz"
+                if not p.is_file():
+                    raise SceneError(f"{p}: missing MVS depth of view {v} (loss.lambda_mvs > 0 needs the mvs init's depth maps)")
+                dm = read_depth(p)
+                if dm.depth_mm.shape != (scene.height, scene.width):
+                    raise SceneError(f"{p}: depth map is {dm.depth_mm.shape[1]}x{dm.depth_mm.shape[0]}, "
+                                     f"scene is {scene.width}x{scene.height} (stale init?)")
+                self.mvs_depth[i] = dm.depth_mm.astype(np.float64) / scene.norm_scale_mm
         self._cache: dict[tuple[int, int], ViewData] = {}
 
     @property
@@ -103,6 +135,9 @@ class TrainViews:
             fp = self.features[i]
             feats = torch.from_numpy(fp.features)
             size = (fp.image_size[0] * h / H, fp.image_size[1] * w / W)
+        mvs = None
+        if self.mvs_depth[i] is not None:
+            mvs = torch.from_numpy(_depth_at(self.mvs_depth[i], w, h)).float()
         w2c = self.w2c_norm[i]
         return ViewData(
             view_id=s.view_ids[i],
@@ -115,4 +150,5 @@ class TrainViews:
             normal_valid=n_valid,
             features=feats,
             feature_image_size=size,
+            mvs_depth=mvs,
         )

@@ -43,10 +43,11 @@ def mesh_chamfer(mesh_ply: Path, scene_dir: Path, gt_dir: Path, cfg: EvaluateCon
                  out_json: Path) -> None:
     """DTU Chamfer distance of the mesh, culled by ``views``' masks, written to ``out_json``."""
     from pipeline.data import dtu
-    from pipeline.evaluation import dtu_eval, gt
+    from pipeline.evaluation import dtu_eval, gt, seen
 
     ground = gt.read_ground_truth(gt_dir, dtu.read_meta(Path(scene_dir)).get("scan_id"))
     cull = dtu_eval.load_cull_views(scene_dir, cfg.cull_views, views)
     vertices, triangles = gt.read_mesh(mesh_ply)
-    metrics = dtu_eval.evaluate_mesh(vertices, triangles, ground, cfg, views=cull, log=None, name=str(mesh_ply))
+    metrics = dtu_eval.evaluate_mesh(vertices, triangles, ground, cfg, views=cull, log=None, name=str(mesh_ply),
+                                     seen_views=seen.load_input_views(scene_dir, views))
     dtu_eval.write_metrics(out_json, {**metrics, "mesh": str(mesh_ply), "scene": str(scene_dir), "gt": str(ground.root)})

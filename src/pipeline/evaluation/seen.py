@@ -1,0 +1,91 @@
+"""Accuracy split by how many input views see the surface a mesh point stands for.
+
+A mesh point ``p`` is charged its distance to the nearest ground-truth point ``q`` (DTU
+accuracy); here ``q`` is also asked which input views see it: ``q`` projects inside the
+view's image, lies in front of the camera, and nothing of the GT mesh lies on the ray from
+the camera more than ``tol_mm`` before it. Points whose ``q`` is seen by >= 2 views are
+surface the views triangulate; by 1 view, surface only that view's photometric loss (and the
+priors) can place; by none, surface the method invented (or the far side of a thin part).
+Accuracy that worsens on the ">= 2" part is drift of well-seen surface, not a guess at
+unseen surface. Needs the GT mesh (synthetic scenes), world mm.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from pipeline import geometry
+
+GROUPS = ("2+", "1", "0")  # seen by >= 2 input views, by exactly 1, by none
+VISIBILITY_TOL_MM = 0.1  # GT points lie on the GT mesh to float32 precision; this is far above it
+
+
+@dataclass
+class InputView:
+    """An input camera: intrinsics for a ``width x height`` image (integer pixel centres)."""
+
+    K: np.ndarray  # 3x3
+    world_to_cam: np.ndarray  # 4x4, world mm -> camera
+    width: int
+    height: int
+
+
+def views_seeing(points_mm: np.ndarray, gt_vertices_mm: np.ndarray, gt_triangles: np.ndarray,
+                 views: list[InputView], tol_mm: float = VISIBILITY_TOL_MM) -> np.ndarray:
+    """How many of ``views`` see each of ``points_mm`` (N, 3), points on the GT surface
+    given by the mesh; ``(N,)`` int."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.core.Tensor(np.asarray(gt_vertices_mm, np.float32)),
+                        o3d.core.Tensor(np.asarray(gt_triangles, np.uint32)))
+    P = np.asarray(points_mm, np.float64)
+    count = np.zeros(len(P), np.int64)
+    for v in views:
+        uv, z = geometry.project(v.K, v.world_to_cam, P)
+        inside = (z > 0) & (uv[:, 0] >= -0.5) & (uv[:, 0] < v.width - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < v.height - 0.5)
+        idx = np.flatnonzero(inside)
+        if not len(idx):
+            continue
+        origin = geometry.camera_center(v.world_to_cam)
+        d = P[idx] - origin
+        length = np.linalg.norm(d, axis=1)
+        # The ray stops tol_mm short of the point: a hit on it means something lies in front.
+        rays = np.concatenate([np.broadcast_to(origin, d.shape), d * (1 - tol_mm / length)[:, None]], 1)
+        blocked = scene.test_occlusions(o3d.core.Tensor(rays.astype(np.float32)), tfar=1.0).numpy()
+        count[idx[~blocked]] += 1
+    return count
+
+
+def accuracy_by_views_seen(data_mm: np.ndarray, gt_points_mm: np.ndarray, gt_vertices_mm: np.ndarray,
+                           gt_triangles: np.ndarray, views: list[InputView], max_dist_mm: float) -> dict:
+    """Accuracy of the mesh points ``data_mm`` split by :func:`views_seeing` of their nearest
+    GT point: per group of :data:`GROUPS`, ``fraction`` of the points and ``accuracy_mm``
+    (mean distance of those within ``max_dist_mm``, as DTU accuracy; NaN for an empty
+    group)."""
+    if not len(data_mm):
+        return {g: {"fraction": math.nan, "accuracy_mm": math.nan} for g in GROUPS}
+    dist, nearest = cKDTree(gt_points_mm).query(data_mm, k=1, workers=-1)
+    seen = views_seeing(gt_points_mm[nearest], gt_vertices_mm, gt_triangles, views)
+    groups = {"2+": seen >= 2, "1": seen == 1, "0": seen == 0}
+    out = {}
+    for g in GROUPS:
+        d = dist[groups[g]]
+        d = d[d < max_dist_mm]
+        out[g] = {"fraction": float(groups[g].mean()), "accuracy_mm": float(d.mean()) if len(d) else math.nan}
+    return out
+
+
+def load_input_views(scene_dir, view_ids) -> list[InputView]:
+    """The input cameras of a DTU-layout scene, at its stored image size."""
+    from pipeline.data import dtu
+
+    cams = dtu.load_cameras(scene_dir)
+    width, height = dtu.stored_image_size(scene_dir)
+    missing = [v for v in view_ids if v not in cams.K]
+    if missing:
+        raise dtu.SceneError(f"{cams.path}: no camera for input view(s) {missing}")
+    return [InputView(cams.K[v], cams.world_to_cam[v], width, height) for v in view_ids]

@@ -1,0 +1,331 @@
+"""PGSR multi-view consistency (Chen et al. 2024, "PGSR: Planar-based Gaussian Splatting",
+Sec. 3.3): a photometric term (NCC of plane-induced homography patches between the
+reference image and its source images) and a geometric term (forward-backward
+reprojection error of the rendered depths). Differentiable torch functions in the rendered
+reference ``depth`` and ``normal``; float32 or float64; torch/numpy only.
+
+Conventions (``pipeline.geometry``): pixel centres at integer coordinates (pixel ``(x, y)``
+is column x, row y; an image of width W spans ``[-0.5, W - 0.5)``); OpenCV camera axes
+(x right, y down, z forward); depth is camera-frame z, not ray length; ``ref_to_src`` maps
+the reference camera frame to a source camera frame. A rendered normal lives in the
+reference camera frame and faces the camera (``n . X < 0``).
+
+Two resolutions: depth and normal are rendered at the *training* resolution ``(h, w)``
+with intrinsics ``K_train``; the images are at the *full* resolution ``(H, W)`` with
+``K_full = S @ K_train``, ``S = [[sx, 0, sx/2 - 1/2], [0, sy, sy/2 - 1/2], [0, 0, 1]]``,
+``sx = W / w``, ``sy = H / h`` (so ``x_full = sx (x_train + 0.5) - 0.5``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+# Added under the square root of the NCC denominator (PGSR's value; grey in [0, 1]).
+NCC_EPS = 1e-8
+# Camera-frame z, |rho| and homogeneous w below which a point counts as behind a camera /
+# a plane counts as through the camera centre. Divisions by such values are replaced by
+# divisions by 1 (the pair is invalid anyway): a masked-out 1/0 would still make the
+# backward pass produce 0 * inf = NaN.
+MIN_Z = 1e-6
+
+
+@dataclass
+class SourceView:
+    """One source view of the reference.
+
+    Attributes:
+        K_full: ``(3, 3)`` intrinsics of ``grey_full`` (pixels).
+        ref_to_src: ``(4, 4)`` rigid map reference camera frame -> this camera's frame.
+        grey_full: ``(H_s, W_s)`` grey image in [0, 1] at full resolution.
+        depth_train: ``(h_s, w_s)`` this view's rendered camera-frame depth (0 = no depth),
+            used detached for the forward-backward check; ``None``: no check.
+        K_train: ``(3, 3)`` intrinsics of ``depth_train``; required with it.
+    """
+
+    K_full: torch.Tensor
+    ref_to_src: torch.Tensor
+    grey_full: torch.Tensor
+    depth_train: torch.Tensor | None = None
+    K_train: torch.Tensor | None = None
+
+
+def _as(x, like: torch.Tensor) -> torch.Tensor:
+    return torch.as_tensor(x, dtype=like.dtype, device=like.device)
+
+
+def _check_shape(name: str, x, shape: tuple[int, ...]) -> None:
+    if not torch.is_tensor(x) or tuple(x.shape) != shape:
+        got = tuple(x.shape) if torch.is_tensor(x) else type(x).__name__
+        raise ValueError(f"{name} must be a tensor of shape {shape}, got {got}")
+
+
+def _homographies(K_ref_inv: torch.Tensor, K_src: torch.Tensor, R: torch.Tensor, t: torch.Tensor,
+                  n_over_rho: torch.Tensor) -> torch.Tensor:
+    """``(M, 3, 3)``: ``K_src (R + t m^T) K_ref^-1`` for each row m of ``n_over_rho`` (M, 3).
+
+    For X on the plane ``n . X = rho``: ``R X + t = R X + t (n . X) / rho = (R + t n^T / rho) X``.
+    """
+    A = R.unsqueeze(0) + t.view(1, 3, 1) * n_over_rho.unsqueeze(1)
+    return K_src @ A @ K_ref_inv
+
+
+def plane_homographies(K_ref, K_src, ref_to_src, normals, points) -> torch.Tensor:
+    """Plane-induced homographies from reference pixels to source pixels.
+
+    Args:
+        K_ref, K_src: ``(3, 3)`` intrinsics (pixels, integer pixel centres).
+        ref_to_src: ``(4, 4)`` reference camera frame -> source camera frame ``[R | t]``.
+        normals: ``(M, 3)`` plane normals in the reference camera frame (unit; the
+            homography is invariant to their scale).
+        points: ``(M, 3)`` a point X of each plane, reference camera frame.
+
+    Returns ``(M, 3, 3)`` matrices ``H = K_src (R + t n^T / rho) K_ref^-1`` with
+    ``rho = n . X``: ``H (u, v, 1)`` is, up to scale, the source pixel of the point where
+    the ray of reference pixel ``(u, v)`` meets the plane. A plane through the reference
+    camera centre (``rho = 0``) has none (non-finite entries).
+    """
+    if not torch.is_tensor(normals) or normals.ndim != 2 or normals.shape[1] != 3:
+        raise ValueError(f"normals must be an (M, 3) tensor, got {getattr(normals, 'shape', type(normals))}")
+    _check_shape("points", points, tuple(normals.shape))
+    for name, m, shape in (("K_ref", K_ref, (3, 3)), ("K_src", K_src, (3, 3)), ("ref_to_src", ref_to_src, (4, 4))):
+        _check_shape(name, m, shape)
+    T = _as(ref_to_src, normals)
+    rho = (normals * _as(points, normals)).sum(-1, keepdim=True)
+    return _homographies(torch.linalg.inv(_as(K_ref, normals)), _as(K_src, normals), T[:3, :3], T[:3, 3], normals / rho)
+
+
+def _sample_grey(img: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+    """Bilinear samples of an ``(H, W)`` image at pixel positions ``pos (..., 2)`` as (x, y).
+
+    ``align_corners=True`` puts grid -1 / +1 on the centres of the first / last pixel, so
+    ``x -> 2 x / (W - 1) - 1`` maps integer pixel centres exactly. Positions must lie in
+    ``[0, W - 1] x [0, H - 1]`` for a true bilinear value (callers mask the others).
+    """
+    H, W = img.shape
+    gx = pos[..., 0] * (2.0 / max(W - 1, 1)) - 1.0
+    gy = pos[..., 1] * (2.0 / max(H - 1, 1)) - 1.0
+    grid = torch.stack([gx, gy], -1).reshape(1, 1, -1, 2)
+    out = F.grid_sample(img[None, None], grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out.reshape(pos.shape[:-1])
+
+
+def _sample_depth(D: torch.Tensor, p: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth of map ``D (h, w)`` (0 = none) at pixel positions ``p (M, 2)``.
+
+    Bilinear where ``p`` lies in ``[0, w-1] x [0, h-1]`` and all four neighbours have
+    depth (differentiable in ``p``); otherwise the nearest pixel (``floor(p + 0.5)``) if
+    it is in the map and has depth: an edge of the depth map must not be blended with
+    "no depth" 0s. Returns ``(depth (M,), ok (M,) bool)``; depth is 0 where not ok.
+    """
+    h, w = D.shape
+    px, py = p[:, 0], p[:, 1]
+    in_near = (px >= -0.5) & (px < w - 0.5) & (py >= -0.5) & (py < h - 0.5)
+    in_bil = (px >= 0) & (px <= w - 1) & (py >= 0) & (py <= h - 1)
+    # Far-away or huge positions would overflow the integer conversion: park them at 0.
+    pxs = torch.where(in_near, px, torch.zeros_like(px))
+    pys = torch.where(in_near, py, torch.zeros_like(py))
+    x0 = torch.floor(pxs.detach()).clamp(0, w - 1).long()
+    y0 = torch.floor(pys.detach()).clamp(0, h - 1).long()
+    x1, y1 = (x0 + 1).clamp(max=w - 1), (y0 + 1).clamp(max=h - 1)
+    fx, fy = pxs - x0.to(p.dtype), pys - y0.to(p.dtype)
+    d00, d10, d01, d11 = D[y0, x0], D[y0, x1], D[y1, x0], D[y1, x1]
+    bil_ok = in_bil & (d00 > 0) & (d10 > 0) & (d01 > 0) & (d11 > 0)
+    bil = (1 - fy) * ((1 - fx) * d00 + fx * d10) + fy * ((1 - fx) * d01 + fx * d11)
+    xn = torch.floor(pxs.detach() + 0.5).clamp(0, w - 1).long()
+    yn = torch.floor(pys.detach() + 0.5).clamp(0, h - 1).long()
+    dn = D[yn, xn]
+    near_ok = in_near & (dn > 0)
+    ok = bil_ok | near_ok
+    d = torch.where(bil_ok, bil, torch.where(near_ok, dn, torch.zeros_like(dn)))
+    return d, ok
+
+
+def _scale_matrix(h: int, w: int, H: int, W: int, like: torch.Tensor) -> torch.Tensor:
+    sx, sy = W / w, H / h
+    return _as([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]], like)
+
+
+def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch) -> None:
+    if not torch.is_tensor(depth) or depth.ndim != 2 or not depth.is_floating_point():
+        raise ValueError(f"depth must be a float (h, w) tensor, got {getattr(depth, 'shape', type(depth))}")
+    h, w = depth.shape
+    _check_shape("normal", normal, (h, w, 3))
+    if not torch.is_tensor(pixels) or pixels.ndim != 2 or pixels.shape[1] != 2:
+        raise ValueError(f"pixels must be an (M, 2) tensor of (x, y), got {getattr(pixels, 'shape', type(pixels))}")
+    if pixels.is_floating_point() or pixels.is_complex() or pixels.dtype == torch.bool:
+        raise ValueError(f"pixels must be an integer tensor, got {pixels.dtype}")
+    if len(pixels) and (
+        pixels[:, 0].min() < 0 or pixels[:, 0].max() >= w or pixels[:, 1].min() < 0 or pixels[:, 1].max() >= h
+    ):
+        raise ValueError(f"pixels must lie in the (h, w) = {(h, w)} training image (x in [0, w), y in [0, h))")
+    _check_shape("K_train", K_train, (3, 3))
+    _check_shape("K_full", K_full, (3, 3))
+    if not torch.is_tensor(grey_ref_full) or grey_ref_full.ndim != 2:
+        raise ValueError(f"grey_ref_full must be an (H, W) tensor, got {getattr(grey_ref_full, 'shape', type(grey_ref_full))}")
+    # A K_full that is not S @ K_train would silently put the patches in the wrong place.
+    H, W = grey_ref_full.shape
+    expect = _scale_matrix(h, w, H, W, K_train.double()) @ K_train.double()
+    if not torch.allclose(K_full.double(), expect, rtol=0.0, atol=1e-4 * float(expect.abs().max())):
+        raise ValueError(
+            f"K_full must equal S @ K_train for the training size {(h, w)} and image size {(H, W)}, "
+            f"i.e. {expect.tolist()}, got {K_full.tolist()}"
+        )
+    if not isinstance(patch, int) or patch < 1 or patch % 2 == 0:
+        raise ValueError(f"patch must be an odd positive int, got {patch!r}")
+    for i, src in enumerate(sources):
+        _check_shape(f"sources[{i}].K_full", src.K_full, (3, 3))
+        _check_shape(f"sources[{i}].ref_to_src", src.ref_to_src, (4, 4))
+        if not torch.is_tensor(src.grey_full) or src.grey_full.ndim != 2:
+            raise ValueError(f"sources[{i}].grey_full must be an (H, W) tensor")
+        if (src.depth_train is None) != (src.K_train is None):
+            raise ValueError(f"sources[{i}].depth_train and sources[{i}].K_train must be given together")
+        if src.depth_train is not None:
+            if not torch.is_tensor(src.depth_train) or src.depth_train.ndim != 2:
+                raise ValueError(f"sources[{i}].depth_train must be an (h, w) tensor")
+            _check_shape(f"sources[{i}].K_train", src.K_train, (3, 3))
+
+
+def multiview_consistency(
+    depth: torch.Tensor,
+    normal: torch.Tensor,
+    pixels: torch.Tensor,
+    K_train: torch.Tensor,
+    K_full: torch.Tensor,
+    grey_ref_full: torch.Tensor,
+    sources: list[SourceView],
+    patch: int = 7,
+    min_patch_std: float = 0.01,
+    max_fb_px: float = 1.0,
+) -> dict[str, torch.Tensor]:
+    """PGSR's multi-view photometric and geometric consistency of one reference view.
+
+    Each pixel ``(x, y)`` of ``pixels`` defines a point ``X = depth[y, x] K_train^-1 (x, y, 1)``
+    and a plane through it with the normalised ``normal[y, x]`` (``rho = n . X``). Its
+    reference patch is the ``patch x patch`` grid of integer full-resolution offsets around
+    ``u = (sx (x + 0.5) - 0.5, sy (y + 0.5) - 0.5)``, sampled bilinearly in ``grey_ref_full``
+    (constants). For each source the plane's homography (:func:`plane_homographies` with
+    ``K_full`` and ``src.K_full``) warps the patch into ``src.grey_full`` (bilinear; the
+    gradient reaches depth and normal through the warped positions), and the cost is
+    ``clamp(1 - NCC, 0, 2)``, ``NCC = cov / sqrt(var_ref var_src + 1e-8)`` (population
+    moments over the patch).
+
+    A (pixel, source) pair is valid when: the depth is positive, ``|rho| > MIN_Z``, the
+    reference patch lies inside ``[0, W-1] x [0, H-1]`` and its grey std is at least
+    ``min_patch_std`` (flat patches have no NCC: excluded, not penalised), X is in front of
+    the source (z > MIN_Z), every warped patch point has a positive homogeneous coordinate
+    (its plane point is in front of the source) and lies inside the source image
+    ``[0, W_s-1] x [0, H_s-1]``. For a source with ``depth_train``, also the
+    forward-backward check: X is projected into the source's training pixels
+    (``src.K_train``), the source depth is read there (bilinear; the nearest pixel where a
+    neighbour has no depth; none: invalid), that source point is mapped back and projected
+    with ``K_train``; ``phi`` = its distance in training pixels to ``(x, y)`` must be below
+    ``max_fb_px`` (else occluded / inconsistent), and the pair's cost is weighted by
+    ``exp(-phi)`` (phi detached). Sources without depth have weight 1 and no phi.
+
+    Args:
+        depth: ``(h, w)`` rendered camera-frame depth (scene units).
+        normal: ``(h, w, 3)`` rendered normals, reference camera frame, any length.
+        pixels: ``(M, 2)`` integer ``(x, y)`` training pixels to use.
+        K_train, K_full: ``(3, 3)`` reference intrinsics at ``(h, w)`` and at the size of
+            ``grey_ref_full``; ``K_full`` must be ``S @ K_train`` (ValueError otherwise).
+        grey_ref_full: ``(H, W)`` reference grey image in [0, 1].
+        sources: the source views (:class:`SourceView`).
+        patch: odd patch side in full-resolution pixels.
+        min_patch_std: least reference-patch grey std for a pair to count.
+        max_fb_px: forward-backward reprojection error (training pixels) at which a pair
+            becomes invalid.
+
+    Returns ``{"photo": sum of exp(-phi) cost over valid pairs / number of valid pairs,
+    "geo": mean phi over valid pairs with the check (training pixels),
+    "valid_fraction": valid pairs / (M * len(sources)) (detached)}``; a term with no pair
+    is a zero that is connected to ``depth`` and ``normal`` (zero gradients).
+    """
+    _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch)
+    h, w = depth.shape
+    Kt, Kf = _as(K_train, depth), _as(K_full, depth)
+    grey_ref = _as(grey_ref_full, depth).detach()
+    H, W = grey_ref.shape
+    sx, sy = W / w, H / h
+    xs, ys = pixels[:, 0].long().to(depth.device), pixels[:, 1].long().to(depth.device)
+    M = len(xs)
+
+    # A zero that carries depth's and normal's graph with exactly zero gradients
+    # (torch.where sends nothing to the branch it does not take).
+    zero = (torch.where(torch.zeros_like(depth, dtype=torch.bool), depth, 0.0).sum()
+            + torch.where(torch.zeros_like(normal, dtype=torch.bool), normal, 0.0).sum())
+
+    z = depth[ys, xs]
+    n = F.normalize(normal[ys, xs].to(depth.dtype), dim=-1)
+    pix = torch.stack([xs, ys], -1).to(depth.dtype)
+    pix_h = torch.cat([pix, torch.ones_like(pix[:, :1])], -1)
+    X = (pix_h @ torch.linalg.inv(Kt).t()) * z.unsqueeze(1)  # rays with z = 1, times depth
+    rho = (n * X).sum(-1)
+    rho_ok = rho.abs() > MIN_Z
+    n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
+
+    # Reference patches at full resolution: offsets (dx, dy), row-major over dy.
+    r = patch // 2
+    o = torch.arange(-r, r + 1, dtype=depth.dtype, device=depth.device)
+    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)  # (P, 2) as (x, y)
+    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
+    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)  # (M, P, 2)
+    ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
+                  & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
+    a = _sample_grey(grey_ref, ref_pos)
+    a_c = a - a.mean(-1, keepdim=True)
+    var_a = (a_c * a_c).mean(-1)
+    ref_ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
+    ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)  # (M, P, 3)
+    Kf_inv = torch.linalg.inv(Kf)
+
+    photo_sum, geo_sum = zero, zero
+    n_valid = n_geo = 0
+    for src in sources:
+        T = _as(src.ref_to_src, depth)
+        R, t = T[:3, :3], T[:3, 3]
+        grey = _as(src.grey_full, depth).detach()
+        Hs, Ws = grey.shape
+        Hm = _homographies(Kf_inv, _as(src.K_full, depth), R, t, n_over_rho)
+        uvw = torch.einsum("mij,mpj->mpi", Hm, ref_h)
+        wz = uvw[..., 2]
+        w_pos = wz > MIN_Z
+        pos = uvw[..., :2] / torch.where(w_pos, wz, torch.ones_like(wz)).unsqueeze(-1)
+        Xs = X @ R.t() + t
+        front = Xs[:, 2] > MIN_Z
+        pd = pos.detach()
+        inside = ((pd[..., 0] >= 0) & (pd[..., 0] <= Ws - 1) & (pd[..., 1] >= 0) & (pd[..., 1] <= Hs - 1)).all(-1)
+        valid = ref_ok & front & w_pos.all(-1) & inside
+        # Invalid pairs sample at (0, 0): finite values, and their gradient is masked below.
+        b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
+        b_c = b - b.mean(-1, keepdim=True)
+        cov = (a_c * b_c).mean(-1)
+        ncc = cov / torch.sqrt(var_a * (b_c * b_c).mean(-1) + NCC_EPS)
+        cost = (1.0 - ncc).clamp(0.0, 2.0)
+
+        weight = torch.ones_like(cost)
+        if src.depth_train is not None:
+            D = _as(src.depth_train, depth).detach()
+            Ks = _as(src.K_train, depth)
+            zs = torch.where(front, Xs[:, 2], torch.ones_like(Xs[:, 2]))
+            p = (Xs @ Ks.t())[:, :2] / zs.unsqueeze(1)
+            d_src, d_ok = _sample_depth(D, p)
+            Ys = (torch.cat([p, torch.ones_like(p[:, :1])], -1) @ torch.linalg.inv(Ks).t()) * d_src.unsqueeze(1)
+            Y = (Ys - t) @ R  # R^T (Ys - t): back into the reference frame
+            q = Y @ Kt.t()
+            q_ok = q[:, 2] > MIN_Z
+            rep = q[:, :2] / torch.where(q_ok, q[:, 2], torch.ones_like(q[:, 2])).unsqueeze(1)
+            phi = torch.linalg.vector_norm(rep - pix, dim=-1)  # its backward is 0, not NaN, at 0
+            valid = valid & d_ok & q_ok & (phi.detach() < max_fb_px)
+            weight = torch.exp(-phi.detach())
+            geo_sum = geo_sum + torch.where(valid, phi, torch.zeros_like(phi)).sum()
+            n_geo += int(valid.sum())
+        photo_sum = photo_sum + torch.where(valid, weight * cost, torch.zeros_like(cost)).sum()
+        n_valid += int(valid.sum())
+
+    return {
+        "photo": photo_sum / max(n_valid, 1),
+        "geo": geo_sum / max(n_geo, 1),
+        "valid_fraction": torch.tensor(n_valid / max(M * len(sources), 1), dtype=depth.dtype, device=depth.device),
+    }
