@@ -160,9 +160,9 @@ def test_prepare_keeps_the_aspect_ratio_of_a_5_4_source(tmp_path, capsys):
     # The scaled intrinsics keep square pixels: fx/fy as in the source.
     assert scene.K[0, 0, 0] / scene.K[0, 1, 1] == pytest.approx(1.0)
     # Sizes within a pixel of rounding are not a change of aspect; more is.
-    check_aspect(src, 801, 641)
+    check_aspect(src, (1280, 1024), 801, 641)
     with pytest.raises(SceneError, match="squash"):
-        check_aspect(src, 800, 642)
+        check_aspect(src, (1280, 1024), 800, 642)
 
 
 # ---- bad input -------------------------------------------------------------------

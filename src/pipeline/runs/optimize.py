@@ -13,18 +13,18 @@ from pipeline.data.scene import check_made_from
 from pipeline.errors import DegenerateResultError, OutputError
 from pipeline.init.io import read_ply
 from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_masks
-from pipeline.optimize.surfels import write_surfel_ply
+from pipeline.optimize.surfels import write_splats_3dgs_ply, write_surfel_ply
 from pipeline.optimize.train import TrainResult, train
 
-LOGGED_TERMS = ("total", "l1", "photo", "gcf", "nor", "dn", "dist", "mask", "surfels", "seconds")
+LOGGED_TERMS = ("total", "l1", "photo", "gcf", "nor", "mvs", "dn", "dist", "mask", "surfels", "seconds")
 
 
 def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path, out_dir: str | Path,
                  cfg: OptimizeConfig, loss: LossConfig, checkpoint: str | Path, live_dir: str | Path | None = None,
                  progress: bool = True) -> TrainResult:
-    """Train surfels for one scene and write ``out_dir/surfels.ply`` (2DGS layout, world mm)
-    and ``out_dir/train.json`` (what was trained; no timings, so two runs give the same
-    bytes). ``checkpoint`` (outside ``out_dir``) is resumed from when it matches and deleted
+    """Train surfels for one scene and write ``out_dir/surfels.ply`` (2DGS layout, world mm),
+    ``out_dir/splats_3dgs.ply`` (the same surfels for 3DGS viewers) and ``out_dir/train.json``
+    (what was trained; no timings, so two runs give the same bytes). ``checkpoint`` (outside ``out_dir``) is resumed from when it matches and deleted
     once the output is written; ``live_dir`` receives the dvclive curves."""
     out_dir, ckpt = Path(out_dir), Path(checkpoint)
     for extra in (ckpt, live_dir):
@@ -38,7 +38,8 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
             check_made_from(scene, priors_dir, "priors.json", "priors")
         cloud_path = Path(init_dir) / "points.ply"
         surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
-        views = make_views(scene, priors_dir, cfg, loss)
+        depth_dir = Path(init_dir) / "depth"
+        views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
 
         live = None
         if live_dir is not None:
@@ -70,6 +71,7 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
             "config": asdict(cfg), "loss": asdict(loss),
         }
         write_surfel_ply(tmp / "surfels.ply", result.params, scene.norm_to_world)
+        write_splats_3dgs_ply(tmp / "splats_3dgs.ply", result.params, scene.norm_to_world)  # for 3DGS viewers
         (tmp / "train.json").write_text(json.dumps(facts, indent=2, sort_keys=True) + "\n")
     ckpt.unlink(missing_ok=True)  # finished: the output is the state now
     return result

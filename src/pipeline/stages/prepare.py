@@ -1,4 +1,4 @@
-"""``gcgs prepare``: load a DTU-layout scan, check it, and write the training views at the
+"""``gcgs prepare``: load a capture (DTU scan, COLMAP or nerfstudio folder; docs/inputs.md), check it, and write the training views at the
 training resolution (intrinsics scaled consistently) as a new DTU-layout scene
 (:mod:`pipeline.data.prepare`). Views and size default to params ``data``; ``--width``
 alone derives the height from the source's aspect ratio, and a size in another aspect
@@ -15,7 +15,7 @@ from pipeline.data.prepare import height_for_width, prepare_scene
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--src", required=True, help="DTU-layout scan folder")
+    p.add_argument("--src", required=True, help="capture folder: DTU scan, COLMAP (images/, sparse/0/) or nerfstudio (transforms.json)")
     p.add_argument("--out", required=True, help="output scene folder")
     p.add_argument("--name", default=None, help="scene name (default: from scene.json or the folder)")
     p.add_argument("--views", type=int, nargs="+", default=None, help="view ids to train on (default: data.views)")
