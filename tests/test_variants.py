@@ -45,6 +45,13 @@ def test_bad_ablation_definitions_are_named():
         AblationConfig(run=[], variants={"x": {"init": "colmap"}})
     with pytest.raises(ConfigError, match="ablation.variants.x"):
         AblationConfig(run=[], variants={"x": {"lr": 1}})
+    with pytest.raises(ConfigError, match=r"ablation.variants.x_seed1: a seed replicate must be 'x' with only "
+                                          r"optimize.seed: 1 added"):
+        AblationConfig(run=[], variants={"x": {"init": "sfm"}, "x_seed1": {"optimize": {"seed": 1}}})
+    with pytest.raises(ConfigError, match="a seed replicate of 'y', which is not defined"):
+        AblationConfig(run=[], variants={"y_seed2": {"optimize": {"seed": 2}}})
+    AblationConfig(run=[], variants={"x": {"init": "sfm"}, "x_seed1": {"init": "sfm", "optimize": {"seed": 1}},
+                                     "full_seed3": {"optimize": {"seed": 3}}})
     with pytest.raises(ConfigError, match="'missing' is not defined"):
         variant_configs(BASE, "missing")
 
@@ -66,7 +73,8 @@ def test_table2_rows_components_and_mean(tmp_path):
         _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(lim, 0.0, 120)})
         _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": chamfer(mvs, 0.5, 50)}})
         _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": chamfer(plain, 2.0, 100)})
-        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": chamfer(full, 0.25, 150)})
+        _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {**chamfer(full, 0.25, 150), "accuracy_by_views_seen": {
+            "2+": {"fraction": 0.9, "accuracy_mm": 0.2 * full}, "1": {"fraction": 0.1, "accuracy_mm": None}}}})
     ablation = AblationConfig(**BASE["ablation"])
     rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
                         tmp_path / "baseline", tmp_path / "limit")
@@ -78,14 +86,17 @@ def test_table2_rows_components_and_mean(tmp_path):
     assert (rows[2]["dense_init"], rows[2]["gcf"], rows[2]["nor"]) == (False, False, False)
     assert (rows[3]["dense_init"], rows[3]["gcf"], rows[3]["nor"]) == (True, True, True)
     assert [r["covered"] for r in rows][1:] == [{"a": 0.25, "b": 0.25}, {"a": 0.5, "b": 0.5}, {"a": 0.75, "b": 0.75}]
-    assert csv_text(rows, scenes).splitlines()[3] == ("plain,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000,"
-                                                     "2.0000,2.0000,2.0000,8.0000,12.0000,10.0000")
+    assert csv_text(rows, scenes).splitlines()[3] == ("plain,0,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000,"
+                                                     "2.0000,2.0000,2.0000,8.0000,12.0000,10.0000,1,"
+                                                     "0.0000,0.0000,0.0000")
     md = markdown(rows, scenes, "abc")
     # The limit is the yardstick, not a row to win: the best method row is in bold.
-    assert "| full method | yes | yes | yes | 1.000 | 2.000 | **1.500** |" in md
-    assert f"| {LIMIT} | — | — | — | 0.500 | 1.500 | 1.000 |" in md
+    assert "| full method | yes | yes | yes | no | 1.000 | 2.000 | **1.500** | 1 |" in md
+    assert f"| {LIMIT} | — | — | — | — | 0.500 | 1.500 | 1.000 | 1 |" in md
     assert "| full method | 0.250 / 1.750 | 0.250 / 3.750 | 0.250 / 2.750 |" in md
     assert f"| {MVS_TSDF} | 0.25 | 0.25 |" in md
+    seen2 = md.split("**Accuracy on surface seen by >= 2 input views**")[1].split("**How much")[0]
+    assert "| full method | 0.200 (90%) | 0.400 (90%) | 0.300 |" in seen2 and "| plain |" not in seen2
     assert "published" not in md  # no published figure unless given, and then apart:
     published = read_published_ablation(REPO / "data" / "published" / "gcgs_table2_ablation.csv")
     assert published[-1] == {"dense_init": True, "gcf": True, "nor": True, "mean_mm": 0.95}
@@ -101,6 +112,44 @@ def test_published_table2_bad_rows_are_named(tmp_path):
     bad.write_text("# comment\nmast3r_init,l_gcf,l_nor,mean_cd_mm\nmaybe,no,no,2.36\n")
     with pytest.raises(InputError, match="t2.csv: row 1: need mast3r_init"):
         read_published_ablation(bad)
+
+
+def test_table2_seed_replicates_give_mean_and_spread(tmp_path):
+    from pipeline.reports.table2 import FULL, build_table2, markdown, seed_groups
+
+    assert seed_groups(["a", "full_seed1", "a_seed1", "b_seed2"]) == {
+        "a": ["a", "a_seed1"], "full": ["full_seed1"], "b": ["b_seed2"]}
+    params = {**BASE, "ablation": {"run": ["plain", "plain_seed1", "full_seed1", "full_seed2"], "variants": {
+        **BASE["ablation"]["variants"], "plain_seed1": {"init": "sfm", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0},
+                                                           "optimize": {"densify": {"every": 50}, "seed": 1}},
+        "full_seed1": {"optimize": {"seed": 1}}, "full_seed2": {"optimize": {"seed": 2}}}}}
+    scenes = ["a", "b"]
+
+    def chamfer(overall):
+        return {"overall_mm": overall, "accuracy_mm": overall / 2, "completeness_mm": 3 * overall / 2,
+                "counts": {"completeness_used": 1, "gt_above_plane": 2}}
+
+    figures = {"metrics": (1.0, 2.0), "variants/full_seed1": (1.2, 2.0), "variants/full_seed2": (0.8, 2.6),
+               "variants/plain": (5.0, 7.0), "variants/plain_seed1": (6.0, 7.0)}
+    for where, per_scene in figures.items():
+        for s, overall in zip(scenes, per_scene):
+            _write(tmp_path / where / f"{s}.json", {"chamfer": chamfer(overall)})
+    for s in scenes:
+        _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(0.5)})
+        _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": chamfer(3.0)}})
+    ablation = AblationConfig(**params["ablation"])
+    rows = build_table2(params, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
+                        tmp_path / "baseline", tmp_path / "limit")
+    full, plain = rows[-1], rows[2]
+    assert [r["row"] for r in rows][2:] == ["plain", FULL] and (full["seeds"], plain["seeds"]) == (3, 2)
+    assert full["a"] == pytest.approx(1.0) and full["b"] == pytest.approx(2.2)
+    # per-seed means over the scenes: 1.5, 1.6, 1.7 -> mean 1.6, half range 0.1
+    assert full["mean"] == pytest.approx(1.6) and full["spread"]["mean"] == pytest.approx(0.1)
+    assert full["spread"]["a"] == pytest.approx(0.2) and full["spread"]["b"] == pytest.approx(0.3)
+    assert plain["spread"] == pytest.approx({"a": 0.5, "b": 0.0, "mean": 0.25})
+    assert full["accuracy"]["a"] == pytest.approx(0.5) and (plain["dense_init"], plain["gcf"]) == (False, False)
+    assert "| full method | yes | yes | yes | no | 1.000 ± 0.200 | 2.200 ± 0.300 | **1.600** ± 0.100 | 3 |" in (
+        markdown(rows, scenes, "abc"))
 
 
 def test_table2_names_a_missing_or_bad_report(tmp_path):

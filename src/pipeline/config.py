@@ -9,6 +9,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import math
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -443,6 +444,9 @@ class SweepConfig:
     cells: list[str] = field(default_factory=list)
 
 
+SEED_REPLICATE = re.compile(r"^(?P<row>.+)_seed(?P<seed>\d+)$")  # Table II's row ROW with training seed K
+
+
 @dataclass
 class AblationConfig:
     """``ablation``: the variants that exist, the ones ``dvc repro`` runs (Table II) and the
@@ -461,6 +465,23 @@ class AblationConfig:
             missing = sorted(set(names) - set(self.variants))
             if missing:
                 raise ConfigError(f"ablation.{key} names undefined variant(s) {missing}; defined: {sorted(self.variants)}")
+        for name, v in self.variants.items():
+            self._check_seed_replicate(name, v)
+
+    def _check_seed_replicate(self, name: str, v: VariantConfig) -> None:
+        """``X_seedK`` is Table II's row X trained with seed K (``full``: the main pipeline):
+        it must be X with only ``optimize.seed: K`` added, or its figures would be averaged
+        into a row they do not belong to."""
+        m = SEED_REPLICATE.match(name)
+        if m is None:
+            return
+        base = VariantConfig() if m["row"] == "full" else self.variants.get(m["row"])
+        if base is None:
+            raise ConfigError(f"ablation.variants.{name}: a seed replicate of {m['row']!r}, which is not defined")
+        expect = dataclasses.replace(base, optimize={**base.optimize, "seed": int(m["seed"])})
+        if v != expect:
+            raise ConfigError(f"ablation.variants.{name}: a seed replicate must be {m['row']!r} with only "
+                              f"optimize.seed: {m['seed']} added, i.e. {dataclasses.asdict(expect)}; got {dataclasses.asdict(v)}")
 
 
 SECTIONS: dict[str, type] = {

@@ -12,6 +12,7 @@ Layout (JSON)::
     heldout  HeldOut (scenes without: held-out views)  |
     variant  {name, init, optimize, loss, mesh}       (ablation cells only)
     provenance {commit, date, cpu, load_average_1min, ...}  (speed-accuracy cells only)
+    input_depth_error {coverage, median_abs_mm, signed_median_mm, ...}  (synthetic scenes)
 """
 from __future__ import annotations
 
@@ -139,11 +140,14 @@ class SceneMetrics:
     heldout: HeldOut | None = None
     variant: dict | None = None
     provenance: dict | None = None
+    input_depth_error: dict | None = None  # pipeline.evaluation.depth_error; synthetic scenes
 
     def to_json(self) -> dict:
         out = {f.name: getattr(self, f.name) for f in fields(self)}
         out["chamfer"] = self.chamfer.to_json() if self.chamfer else None
         out["heldout"] = self.heldout.to_json() if self.heldout else None
+        if self.input_depth_error is not None:
+            out["input_depth_error"] = {k: _json_number(v) for k, v in self.input_depth_error.items()}
         return {k: v for k, v in out.items() if v is not None}
 
     def write(self, path: str | Path) -> None:
@@ -169,4 +173,5 @@ class SceneMetrics:
         return cls(scene=data["scene"], train=data["train"], timing=data["timing"], mesh=data["mesh"],
                    chamfer=Chamfer.parse(data["chamfer"], f"{where}: chamfer") if "chamfer" in data else None,
                    heldout=HeldOut.parse(data["heldout"], f"{where}: heldout") if "heldout" in data else None,
-                   variant=data.get("variant"), provenance=data.get("provenance"))
+                   variant=data.get("variant"), provenance=data.get("provenance"),
+                   input_depth_error=data.get("input_depth_error"))

@@ -46,6 +46,11 @@ def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) 
             if r is not None:
                 lines.append(f"| accuracy on surface {label} ({100 * r['fraction']:.1f}% of the mesh) | "
                              f"{_fmt(r['accuracy_mm'], 3)} |")
+        e = metrics.input_depth_error
+        if e is not None:
+            lines.append(f"| depth the mesh is fused from, at the input views, against the GT's: median abs error "
+                         f"(signed median; share above 1 mm) | {_fmt(e.get('median_abs_mm'), 3)} "
+                         f"({_fmt(e.get('signed_median_mm'), 3)}; {_fmt(e.get('share_above_1mm'), 2)}) |")
         lines.append("")
         if not c.valid:
             lines += [f"Evaluation flagged invalid: {'; '.join(c.problems)}", ""]

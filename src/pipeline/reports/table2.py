@@ -6,14 +6,20 @@ L_gcf, L_nor). Sources: ``reports/baseline/SCENE.json`` (MVS + TSDF),
 (the full method) and ``reports/limit/SCENE.json`` (the 3-view limit: the ground truth cut
 to what the input views see, :mod:`pipeline.evaluation.limit`); every cell is a
 measurement of this pipeline. Accuracy and completeness are given beside overall, so a
-reader sees on which side each row loses to the limit."""
+reader sees on which side each row loses to the limit.
+
+Seeds: a variant named ``ROW_seedK`` is row ``ROW`` trained with another seed (``full_seedK``:
+the full method, whose seed-0 run is the main pipeline). A row with seed replicates shows the
+mean over its seeds and, beside it, the spread: half the range (max - min) of the overall
+figure over the seeds, so a difference between rows smaller than their spreads is none."""
 from __future__ import annotations
 
 import csv
 import io
+import math
 from pathlib import Path
 
-from pipeline.config import LossConfig, VariantConfig, merged_section
+from pipeline.config import SEED_REPLICATE, LossConfig, VariantConfig, merged_section
 from pipeline.evaluation.record import Chamfer
 from pipeline.reports.read import ReportError, read_json
 
@@ -21,6 +27,18 @@ MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
 LIMIT = "3-view limit (GT seen by the input views)"
 NOT_A_METHOD = (MVS_TSDF, LIMIT)  # rows without the method's components
+COMPONENTS = ("dense_init", "gcf", "nor", "mv")
+
+
+def seed_groups(run: list[str]) -> dict[str, list[str]]:
+    """Rows of ``run`` in order, each with its variants: ``{"no_gcf": ["no_gcf", "no_gcf_seed1"],
+    "full": ["full_seed1", ...]}``; a replicate whose row is not in ``run`` is a row of its
+    own replicates (``full`` is the main pipeline's row)."""
+    groups: dict[str, list[str]] = {}
+    for name in run:
+        m = SEED_REPLICATE.match(name)
+        groups.setdefault(m["row"] if m else name, []).append(name)
+    return groups
 
 
 def _cell(path: Path, chamfer: str) -> dict:
@@ -33,13 +51,37 @@ def _cell(path: Path, chamfer: str) -> dict:
             raise ReportError(f"{path}: missing `{chamfer}`")
         data = data[k]
     c = Chamfer.parse(data, f"{path}: {chamfer}")
-    return {**c.figures(f"{path}: {chamfer}"), "covered": c.covered_fraction(f"{path}: {chamfer}")}
+    seen2 = (c.accuracy_by_views_seen or {}).get("2+") or {}
+    return {**c.figures(f"{path}: {chamfer}"), "covered": c.covered_fraction(f"{path}: {chamfer}"),
+            "seen2": _finite(seen2.get("accuracy_mm")), "seen2_fraction": _finite(seen2.get("fraction"))}
+
+
+def _finite(x) -> float:
+    return float(x) if isinstance(x, (int, float)) and math.isfinite(x) else math.nan
 
 
 def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool | None]:
     loss = merged_section(LossConfig, "loss", params, variant.loss if variant else {})
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
-            "nor": loss.lambda_nor > 0}
+            "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0}
+
+
+def _row(row: str, flags: dict, runs: list[dict[str, dict]], scenes: list[str]) -> dict:
+    """One table row from its runs (one per seed; each ``{scene: cell}``): figures are means
+    over the runs, ``spread`` half the range of the overall figure per scene and of the mean."""
+    def avg(xs):
+        return sum(xs) / len(xs)
+
+    scene_mean = [avg([run[s]["overall"] for s in scenes]) for run in runs]
+    side = {k: {**{s: avg([run[s][k] for run in runs]) for s in scenes}}
+            for k in ("accuracy", "completeness", "seen2", "seen2_fraction")}
+    for k in side:
+        side[k]["mean"] = avg([side[k][s] for s in scenes])
+    return {"row": row, **flags, **{s: avg([run[s]["overall"] for run in runs]) for s in scenes},
+            "mean": avg(scene_mean), "covered": {s: avg([run[s]["covered"] for run in runs]) for s in scenes}, **side,
+            "seeds": len(runs),
+            "spread": {**{s: (max(r[s]["overall"] for r in runs) - min(r[s]["overall"] for r in runs)) / 2
+                          for s in scenes}, "mean": (max(scene_mean) - min(scene_mean)) / 2}}
 
 
 def build_table2(params: dict, scenes: list[str], run: list[str], variants: dict[str, VariantConfig],
@@ -48,21 +90,20 @@ def build_table2(params: dict, scenes: list[str], run: list[str], variants: dict
     """Rows ``{"row", "dense_init", "gcf", "nor", SCENE: overall mm ..., "mean": mm,
     "covered": {SCENE: fraction}, "accuracy": {SCENE: mm, "mean": mm}, "completeness": {...}}``
     (``covered``: :func:`~pipeline.reports.table1.covered_fraction`); the 3-view limit first."""
-    sources = [(LIMIT, None, lambda s: Path(limit_dir) / f"{s}.json", "chamfer"),
-               (MVS_TSDF, None, lambda s: Path(baseline_dir) / f"{s}.json", "evaluate.metrics")]
-    sources += [(name, variants[name], lambda s, n=name: Path(variants_dir) / n / f"{s}.json", "chamfer")
-                for name in run]
-    sources.append((FULL, None, lambda s: Path(metrics_dir) / f"{s}.json", "chamfer"))
+    def variant_path(name):
+        return lambda s: Path(variants_dir) / name / f"{s}.json"
+
+    groups = seed_groups(run)
+    full_runs = [lambda s: Path(metrics_dir) / f"{s}.json"] + [variant_path(n) for n in groups.pop("full", [])]
+    sources = [(LIMIT, None, [lambda s: Path(limit_dir) / f"{s}.json"], "chamfer"),
+               (MVS_TSDF, None, [lambda s: Path(baseline_dir) / f"{s}.json"], "evaluate.metrics")]
+    sources += [(row, variants[names[0]], [variant_path(n) for n in names], "chamfer") for row, names in groups.items()]
+    sources.append((FULL, None, full_runs, "chamfer"))
     rows = []
-    for row, variant, path_of, chamfer in sources:
-        cells = {s: _cell(path_of(s), chamfer) for s in scenes}
-        flags = ({"dense_init": None, "gcf": None, "nor": None} if row in NOT_A_METHOD
-                 else _components(params, variant))
-        side = {k: {**{s: cells[s][k] for s in scenes}, "mean": sum(cells[s][k] for s in scenes) / len(scenes)}
-                for k in ("accuracy", "completeness")}
-        rows.append({"row": row, **flags, **{s: cells[s]["overall"] for s in scenes},
-                     "mean": sum(cells[s]["overall"] for s in scenes) / len(scenes),
-                     "covered": {s: cells[s]["covered"] for s in scenes}, **side})
+    for row, variant, paths_of, chamfer in sources:
+        runs = [{s: _cell(path_of(s), chamfer) for s in scenes} for path_of in paths_of]
+        flags = dict.fromkeys(COMPONENTS) if row in NOT_A_METHOD else _components(params, variant)
+        rows.append(_row(row, flags, runs, scenes))
     return rows
 
 
@@ -91,18 +132,24 @@ def _mark(v: bool | None) -> str:
 
 
 def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[dict] | None = None) -> str:
-    head = ["row", "dense init", "L_gcf", "L_nor", *scenes, "mean"]
+    head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", *scenes, "mean", "seeds"]
     lines = ["# Table II: ablation on the synthetic suite (overall Chamfer, mm; lower is better)", "",
              f"Measured here by `dvc repro` (stages evaluate, variant, baseline) at commit `{commit}`, "
              "views 23/24/33 at the `data` size, the `optimize` preset of params.yaml. Rows: the 3-view "
              "limit (the ground truth cut to what the input views see, scored alike: what a method that "
              "invents nothing would score; the yardstick, not a method, so not in bold), the classical "
-             "baseline, the variants of params `ablation.run` (conf/ablation), the full method.", "",
+             "baseline, the variants of params `ablation.run` (conf/ablation), the full method. A row "
+             "run with several training seeds gives the mean over them and ± half their range: a "
+             "difference between two rows smaller than their spreads is none.", "",
              "| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
     best = min(r["mean"] for r in rows if r["row"] != LIMIT)
     for r in rows:
-        cells = [r["row"], _mark(r["dense_init"]), _mark(r["gcf"]), _mark(r["nor"]),
-                 *(f"{r[s]:.3f}" for s in scenes), (f"**{r['mean']:.3f}**" if r["mean"] == best else f"{r['mean']:.3f}")]
+        def fig(key, bold=False):
+            text = f"**{r[key]:.3f}**" if bold else f"{r[key]:.3f}"
+            return f"{text} ± {r['spread'][key]:.3f}" if r["seeds"] > 1 else text
+
+        cells = [r["row"], *(_mark(r[k]) for k in COMPONENTS), *(fig(s) for s in scenes),
+                 fig("mean", r["mean"] == best), str(r["seeds"])]
         lines.append("| " + " | ".join(cells) + " |")
     lines += ["", "**Accuracy / completeness** (mm): the two halves of each overall figure. The 3-view "
               "limit's accuracy is near zero by construction, and its completeness is what the surface "
@@ -111,6 +158,17 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
     for r in rows:
         lines.append(f"| {r['row']} | " + " | ".join(f"{r['accuracy'][s]:.3f} / {r['completeness'][s]:.3f}"
                                                      for s in (*scenes, "mean")) + " |")
+    lines += ["", "**Accuracy on surface seen by >= 2 input views** (mm; in brackets the share of the mesh "
+              "there): mesh points whose nearest GT point at least two input views see "
+              "(`pipeline.evaluation.seen`), the surface the views triangulate. A row worse here than "
+              "MVS+TSDF has moved well-seen surface away from where the views put it (drift), which no "
+              "guess at unseen surface explains.", "",
+              "| row | " + " | ".join(scenes) + " | mean |", "|" + " --- |" * (len(scenes) + 2)]
+    for r in rows:
+        if not all(math.isfinite(r["seen2"][s]) for s in scenes):
+            continue
+        lines.append(f"| {r['row']} | " + " | ".join(f"{r['seen2'][s]:.3f} ({100 * r['seen2_fraction'][s]:.0f}%)"
+                                                     for s in scenes) + f" | {r['seen2']['mean']:.3f} |")
     lines += ["", "**How much of each object those figures cover**: the fraction of ground-truth points "
               "within `evaluate.max_dist_mm` of the mesh. The DTU protocol leaves the others out of "
               "completeness, so a mesh that omits a region it cannot reconstruct (the classical "
@@ -136,10 +194,11 @@ def csv_text(rows: list[dict], scenes: list[str]) -> str:
     buf = io.StringIO()
     w = csv.writer(buf, lineterminator="\n")
     sides = [(k, s) for k in ("accuracy", "completeness") for s in (*scenes, "mean")]
-    w.writerow(["row", "dense_init", "gcf", "nor", *scenes, "mean", *(f"{s}_covered" for s in scenes),
-                *(f"{s}_{k}" for k, s in sides)])
+    w.writerow(["row", *COMPONENTS, *scenes, "mean", *(f"{s}_covered" for s in scenes),
+                *(f"{s}_{k}" for k, s in sides), "seeds", *(f"{s}_spread" for s in (*scenes, "mean"))])
     for r in rows:
-        w.writerow([r["row"], *("" if r[k] is None else int(r[k]) for k in ("dense_init", "gcf", "nor")),
+        w.writerow([r["row"], *("" if r[k] is None else int(r[k]) for k in COMPONENTS),
                     *(f"{r[s]:.4f}" for s in scenes), f"{r['mean']:.4f}", *(f"{r['covered'][s]:.4f}" for s in scenes),
-                    *(f"{r[k][s]:.4f}" for k, s in sides)])
+                    *(f"{r[k][s]:.4f}" for k, s in sides), r["seeds"],
+                    *(f"{r['spread'][s]:.4f}" for s in (*scenes, "mean"))])
     return buf.getvalue()

@@ -26,6 +26,7 @@ from pipeline.data import dtu
 from pipeline.evaluation import gt
 from pipeline.runs.baseline_steps import backend_cloud, mesh_chamfer, tsdf_mesh
 from pipeline.evaluation.clouds import cloud_metrics
+from pipeline.evaluation.record import Chamfer
 from pipeline.init import BACKEND_MODULES
 from pipeline.init.io import read_ply
 from pipeline.measure import Usage, run_in_child
@@ -105,8 +106,7 @@ def baseline_scene(scene_dir: str | Path, init_dir: str | Path, out_dir: str | P
                 report["evaluate"] = step
                 if step["status"] == "ok":
                     m = json.loads((tmp / MESH_METRICS).read_text())
-                    step["metrics"] = {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid",
-                                                        "problems", "counts")}
+                    step["metrics"] = Chamfer.of(m).to_json()
         log(f"tsdf: {report['tsdf']['status']}"
             + (f", overall {report['evaluate']['metrics']['overall_mm']} mm" if "metrics" in report.get("evaluate", {})
                else ""))

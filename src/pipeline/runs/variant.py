@@ -50,7 +50,7 @@ def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, sr
     mesh_surfels_dir(scene_dir, surfels_dir, mesh_dir, mesh_cfg, backend)
 
     metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, timing_path,
-                            section(EvaluateConfig, "evaluate", params), opt, input_views, backend)
+                            section(EvaluateConfig, "evaluate", params), opt, mesh_cfg, input_views, backend)
     metrics = dataclasses.replace(metrics, variant={"name": variant, "init": v.init, "optimize": v.optimize,
                                                     "loss": v.loss, "mesh": v.mesh})
     metrics.write(report)

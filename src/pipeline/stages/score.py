@@ -8,7 +8,7 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import DataConfig, EvaluateConfig, OptimizeConfig, load_params, scene_entry, section
+from pipeline.config import DataConfig, EvaluateConfig, MeshConfig, OptimizeConfig, load_params, scene_entry, section
 from pipeline.runs.score import scene_metrics
 from pipeline.rasterizer import resolve_backend
 
@@ -30,7 +30,8 @@ def run(args: argparse.Namespace) -> int:
     opt = section(OptimizeConfig, "optimize", params)
     metrics = scene_metrics(args.name, args.scene, entry.src, entry.gt, args.surfels_dir, args.mesh_dir,
                             args.train_timing, section(EvaluateConfig, "evaluate", params), opt,
-                            section(DataConfig, "data", params).views, resolve_backend(opt.backend))
+                            section(MeshConfig, "mesh", params), section(DataConfig, "data", params).views,
+                            resolve_backend(opt.backend))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     metrics.write(args.out)
     m = metrics.to_json()
