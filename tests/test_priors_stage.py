@@ -32,9 +32,10 @@ def setup(tmp_path_factory, bundled_scan):
     }
 
 
-def params_file(tmp_path: Path, **loss) -> Path:
+def params_file(tmp_path: Path, ablation_run=(), **loss) -> Path:
     params = yaml.safe_load(PARAMS_PATH.read_text())
     params["loss"].update(loss)
+    params["ablation"]["run"] = list(ablation_run)
     p = tmp_path / "params.yaml"
     p.write_text(yaml.safe_dump(params))
     return p
@@ -107,6 +108,18 @@ def test_zero_loss_weights_skip_work(setup, tmp_path, loss, has_normals, has_fea
     assert (out / "priors.json").is_file()
 
 
+def test_a_prior_an_ablation_cell_weights_is_computed(setup, tmp_path):
+    """The main loss weights no feature, but a cell of ablation.run trains with L_gcf on the
+    same priors folder: the features are there for it."""
+    out = tmp_path / "out"
+    params = yaml.safe_load(params_file(tmp_path, lambda_gcf=0.0).read_text())
+    params["ablation"]["variants"]["with_gcf"] = {"loss": {"lambda_gcf": 2.0}}
+    params["ablation"]["run"] = ["with_gcf"]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    assert run_cli(setup, out, params=tmp_path / "params.yaml") == 0
+    assert (out / "features").is_dir() and (out / "normals").is_dir()
+
+
 def leftovers(parent: Path, name: str) -> list[Path]:
     return [p for p in parent.iterdir() if p.name.startswith(f".{name}.")]
 
@@ -154,7 +167,7 @@ def test_dvc_stage_declares_what_it_reads():
     stages = yaml.safe_load((PARAMS_PATH.parent / "dvc.yaml").read_text())["stages"]
     do = stages["priors"]["do"]
     assert stages["priors"]["foreach"] == "${scenes}"
-    assert sorted(do["params"]) == ["loss.lambda_gcf", "loss.lambda_nor", "priors"]
+    assert sorted(do["params"]) == ["ablation.run", "ablation.variants", "loss", "priors"]
     deps = set(do["deps"])
 
     def covered(path: str) -> bool:  # listed itself, or a listed folder holds it

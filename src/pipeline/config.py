@@ -484,6 +484,14 @@ class AblationConfig:
                               f"optimize.seed: {m['seed']} added, i.e. {dataclasses.asdict(expect)}; got {dataclasses.asdict(v)}")
 
 
+def losses_in_use(params: dict[str, Any]) -> list[LossConfig]:
+    """The loss settings that train on a scene's priors: the main ``loss`` section and each
+    variant of ``ablation.run`` merged over it. A prior is needed when any of them weights it."""
+    ablation = section(AblationConfig, "ablation", params)
+    return [section(LossConfig, "loss", params)] + [merged_section(LossConfig, "loss", params, ablation.variants[n].loss)
+                                                    for n in ablation.run]
+
+
 SECTIONS: dict[str, type] = {
     "data": DataConfig,
     "synth": SynthConfig,

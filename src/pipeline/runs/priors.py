@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections.abc import Sequence
 from pathlib import Path
 
 from pipeline.atomic import atomic_dir
@@ -25,17 +26,20 @@ from pipeline.priors.io import (
 )
 
 
-def effective_backends(cfg: PriorsConfig, loss: LossConfig) -> tuple[str, str]:
-    """``(normals, features)`` backends actually run: ``none`` where the loss weight is 0."""
-    return (cfg.normals if loss.lambda_nor > 0 else "none", cfg.features if loss.lambda_gcf > 0 else "none")
+def effective_backends(cfg: PriorsConfig, losses: Sequence[LossConfig]) -> tuple[str, str]:
+    """``(normals, features)`` backends actually run: ``none`` where every loss setting that
+    trains on these priors (the main one and the ablation cells', ``config.losses_in_use``)
+    weights the prior 0."""
+    return (cfg.normals if any(loss.lambda_nor > 0 for loss in losses) else "none",
+            cfg.features if any(loss.lambda_gcf > 0 for loss in losses) else "none")
 
 
-def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, loss: LossConfig,
+def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, losses: Sequence[LossConfig],
                init_dir: str | Path | None = None) -> dict:
     """Compute the configured priors of every view and write them atomically; returns
     the facts written to priors.json (no timings: identical inputs give identical bytes)."""
     out_dir = Path(out_dir)
-    normals_backend, features_backend = effective_backends(cfg, loss)
+    normals_backend, features_backend = effective_backends(cfg, losses)
     models = (cfg.dsine_model if normals_backend == "dsine" else None,
               cfg.vismvsnet_model if features_backend == "vismvsnet" else None)
     with atomic_dir(out_dir, "priors", inputs=(scene_dir, init_dir, *models)) as tmp:
@@ -86,8 +90,6 @@ def run_priors(scene_dir: str | Path, out_dir: str | Path, cfg: PriorsConfig, lo
             "size": [scene.width, scene.height],
             "normals": normals_backend,
             "features": features_backend,
-            "lambda_nor": loss.lambda_nor,
-            "lambda_gcf": loss.lambda_gcf,
             "per_view": per_view,
             "config": dataclasses.asdict(cfg),
         }

@@ -10,7 +10,7 @@ from __future__ import annotations
 import argparse
 import time
 
-from pipeline.config import LossConfig, PriorsConfig, load_params, section
+from pipeline.config import PriorsConfig, load_params, losses_in_use, section
 from pipeline.measure import peak_rss_mb
 from pipeline.runs.priors import run_priors
 
@@ -23,17 +23,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--features", choices=PriorsConfig.FEATURES, default=None, help="default: priors.features")
     p.add_argument("--dsine-model", default=None, help="default: priors.dsine_model")
     p.add_argument("--vismvsnet-model", default=None, help="default: priors.vismvsnet_model")
-    p.add_argument("--params", default=None, help="params.yaml to read `priors` and `loss` from (default: ./params.yaml)")
+    p.add_argument("--params", default=None, help="params.yaml to read `priors`, `loss` and `ablation` from (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     cfg = section(PriorsConfig, "priors", params, {key: getattr(args, key) for key in
                                                    ("normals", "features", "dsine_model", "vismvsnet_model")})
-    loss = section(LossConfig, "loss", params)
+    losses = losses_in_use(params)
     t0 = time.perf_counter()
-    info = run_priors(args.scene, args.out_dir, cfg, loss, init_dir=args.init_dir)
-    print(f"priors: normals {info['normals']} (lambda_nor {loss.lambda_nor}), features {info['features']} "
-          f"(lambda_gcf {loss.lambda_gcf}) for views {info['views']} in {time.perf_counter() - t0:.2f} s "
+    info = run_priors(args.scene, args.out_dir, cfg, losses, init_dir=args.init_dir)
+    print(f"priors: normals {info['normals']}, features {info['features']} (what the main loss and the ablation "
+          f"cells weight) for views {info['views']} in {time.perf_counter() - t0:.2f} s "
           f"(peak RSS {peak_rss_mb()} MB) -> {args.out_dir}")
     return 0
