@@ -113,7 +113,7 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     for stage in ("variant@synth_relief-baseline_2dgs", "optimize@synth_relief", "mesh@synth_relief"):
         assert stage not in status
 
-    params["loss"]["lambda_gcf"] = 0.0
+    params["loss"]["lambda_gcf"] = 2.0  # L_gcf on: the priors stage now extracts features too
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     status = _dvc(tiny_repo, "status")
     for stage in ("priors@scan24", "optimize@scan24", "optimize@synth_relief"):

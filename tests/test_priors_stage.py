@@ -89,8 +89,8 @@ def test_onnx_backends_run_through_onnxruntime(setup, tmp_path):
 
 
 @pytest.mark.parametrize(("loss", "has_normals", "has_features"), [
-    ({"lambda_gcf": 0.0}, True, False),
-    ({"lambda_nor": 0.0}, False, True),
+    ({"lambda_gcf": 0.0, "lambda_nor": 0.1}, True, False),
+    ({"lambda_gcf": 2.0, "lambda_nor": 0.0}, False, True),
     ({"lambda_gcf": 0.0, "lambda_nor": 0.0}, False, False),
 ])
 def test_zero_loss_weights_skip_work(setup, tmp_path, loss, has_normals, has_features):

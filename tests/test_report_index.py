@@ -95,6 +95,7 @@ def _reports(root: Path) -> dict:
                     "psnr_masked_db_mean": 16.46, "per_view": {}}}))
     (root / "renders").mkdir()
     (root / "renders/scan24.png").write_bytes(b"png")
+    (root / "renders/scan24_heldout.png").write_bytes(b"png")
     (root / "train/scan24/plots/metrics/train").mkdir(parents=True)
     (root / "train/scan24/plots/metrics/train/total.tsv").write_text("step\ttotal\n0\t1.0\n")
     return {"synth_a": {"src": "data/synth/synth_a", "gt": "data/synth/synth_a/gt"},
@@ -111,6 +112,7 @@ def test_index_shows_what_exists_with_its_source(tmp_path):
     assert "| mask IoU of the surfels (alpha > 0.5) | 0.900 |" in md and "| PSNR over the mask (dB) | 16.46 |" in md
     assert "preset **paper**, 500 iterations" in md and "61 s wall" in md
     assert "](renders/scan24.png)" in md and "renders/synth_a.png" not in md
+    assert "](renders/scan24_heldout.png)" in md and "renders/synth_a_heldout.png" not in md
     assert "[total](train/scan24/plots/metrics/train/total.tsv)" in md
 
     (tmp_path / "table2.md").write_text("# Table II\n\n| variant | mean |\n| --- | --- |\n| full | 1 |\n")

@@ -67,6 +67,12 @@ def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) 
                   "Left to right, at the first input view: the input image, the trained surfels' rendered colour "
                   "and normals (camera frame, (n + 1) / 2 with x right, y up, z to the viewer), the extracted "
                   "mesh lit from the camera.", ""]
+    heldout = reports / "renders" / f"{name}_heldout.png"
+    if heldout.is_file():
+        lines += [f"![{name}: mesh silhouette over held-out masks](renders/{name}_heldout.png)", "",
+                  "Held-out views, the mesh's silhouette over each view's mask on the dimmed image: grey where "
+                  "both cover a pixel, red where only the mask does (missed), blue where only the mesh does "
+                  "(extra); the IoU printed is the mesh's.", ""]
     curves = sorted((reports / "train" / name / "plots" / "metrics" / "train").glob("*.tsv"))
     if curves:
         links = ", ".join(f"[{c.stem}]({c.relative_to(reports).as_posix()})" for c in curves)

@@ -1,11 +1,14 @@
-"""``gcgs render-scene``: one scene's picture for the report (input view, surfels' colour and
-normal, mesh; :mod:`pipeline.reports.renders`) -> ``reports/renders/SCENE.png``."""
+"""``gcgs render-scene``: one scene's pictures for the report (:mod:`pipeline.reports.renders`):
+input view, surfels' colour and normal, mesh -> ``reports/renders/SCENE.png``; with ``--src``
+and ``--heldout-out``, the mesh's silhouette against the masks of held-out views ->
+``reports/renders/SCENE_heldout.png``."""
 from __future__ import annotations
 
 import argparse
 
 from pipeline.config import OptimizeConfig, load_params, section
-from pipeline.reports.renders import PANEL_WIDTH, scene_panels, write_png
+from pipeline.errors import ConfigError
+from pipeline.reports.renders import HELDOUT_VIEWS, PANEL_WIDTH, heldout_overlay, mesh_caster, scene_panels, write_png
 from pipeline.rasterizer import resolve_backend
 
 
@@ -14,14 +17,34 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--surfels", required=True, help="trained surfels (optimize stage: surfels.ply)")
     p.add_argument("--mesh", required=True, help="extracted mesh, world mm (mesh stage: mesh.ply)")
     p.add_argument("--out", required=True, help="PNG to write")
-    p.add_argument("--panel-width", type=int, default=PANEL_WIDTH, help="width of each of the four panels, px")
+    p.add_argument("--panel-width", type=int, default=PANEL_WIDTH, help="width of each panel, px")
+    p.add_argument("--src", default=None,
+                   help="the scan the scene was prepared from: its held-out views (SRC/heldout/, else SRC/image/ "
+                        "less the scene's views), with masks, as the evaluate stage reads them")
+    p.add_argument("--heldout-out", default=None, help="PNG of the mesh's silhouette at held-out views (needs --src)")
+    p.add_argument("--heldout-views", type=int, default=HELDOUT_VIEWS, help="how many held-out views to show")
     p.add_argument("--params", default=None, help="params.yaml (optimize.background, optimize.backend)")
 
 
 def run(args: argparse.Namespace) -> int:
+    if (args.src is None) != (args.heldout_out is None):
+        raise ConfigError("--src and --heldout-out go together (the held-out picture needs the scan's held-out views)")
+    if args.panel_width < 1 or args.heldout_views < 1:
+        raise ConfigError(f"--panel-width ({args.panel_width}) and --heldout-views ({args.heldout_views}) "
+                          "must be positive")
     opt = section(OptimizeConfig, "optimize", load_params(args.params))
-    rgb = scene_panels(args.scene, args.surfels, args.mesh, args.panel_width, opt.background,
+    caster = mesh_caster(args.mesh)  # once for both pictures; a missing mesh stops here
+    rgb = scene_panels(args.scene, args.surfels, caster, args.panel_width, opt.background,
                        resolve_backend(opt.backend))
+    held = None
+    if args.src is not None:
+        held = heldout_overlay(args.scene, args.src, caster, args.panel_width, args.heldout_views)
+    # Written only once both are made: a failure leaves neither picture half-updated.
     write_png(args.out, rgb)
     print(f"[render-scene] {args.scene}: {rgb.shape[1]}x{rgb.shape[0]} -> {args.out}")
+    if held is not None:
+        write_png(args.heldout_out, held.rgb)
+        ious = ", ".join(f"{v.view}: {v.iou:.3f}" for v in held.views)
+        print(f"[render-scene] held-out views (mesh IoU) {ious}: {held.rgb.shape[1]}x{held.rgb.shape[0]} "
+              f"-> {args.heldout_out}")
     return 0
