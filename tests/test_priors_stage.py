@@ -109,12 +109,13 @@ def test_zero_loss_weights_skip_work(setup, tmp_path, loss, has_normals, has_fea
 
 
 def test_a_prior_an_ablation_cell_weights_is_computed(setup, tmp_path):
-    """The main loss weights no feature, but a cell of ablation.run trains with L_gcf on the
-    same priors folder: the features are there for it."""
+    """The main loss weights neither prior, but cells of ablation.run train with L_gcf and
+    with L_nor on the same priors folder: the features and normals are there for them."""
     out = tmp_path / "out"
-    params = yaml.safe_load(params_file(tmp_path, lambda_gcf=0.0).read_text())
+    params = yaml.safe_load(params_file(tmp_path, lambda_gcf=0.0, lambda_nor=0.0).read_text())
     params["ablation"]["variants"]["with_gcf"] = {"loss": {"lambda_gcf": 2.0}}
-    params["ablation"]["run"] = ["with_gcf"]
+    params["ablation"]["variants"]["with_nor"] = {"loss": {"lambda_nor": 0.25}}
+    params["ablation"]["run"] = ["with_gcf", "with_nor"]
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     assert run_cli(setup, out, params=tmp_path / "params.yaml") == 0
     assert (out / "features").is_dir() and (out / "normals").is_dir()
