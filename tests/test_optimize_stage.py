@@ -79,8 +79,11 @@ def test_a_missing_init_cloud_is_named(stage_inputs, tmp_path, capsys):
 def test_missing_priors_are_named(stage_inputs, tmp_path, capsys):
     root, _ = stage_inputs
     (tmp_path / "no_priors").mkdir()
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["loss"]["lambda_nor"] = 0.25  # a loss that reads the normal prior (off by default)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     rc = cli.main(["optimize", "--scene", str(root / "scene"), "--init-dir", str(root / "init"), "--priors-dir",
-                   str(tmp_path / "no_priors"), "--out-dir", str(tmp_path / "out"), "--params", str(root / "params.yaml"),
+                   str(tmp_path / "no_priors"), "--out-dir", str(tmp_path / "out"), "--params", str(tmp_path / "params.yaml"),
                    "--checkpoint", str(tmp_path / "c.pt"), "--metrics", str(tmp_path / "m.json"),
                    "--live-dir", str(tmp_path / "live"), "--no-progress"])
     err = capsys.readouterr().err
