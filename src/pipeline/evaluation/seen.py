@@ -18,6 +18,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline import geometry
+from pipeline.meshing.raycast import MeshCaster
 
 GROUPS = ("2+", "1", "0")  # seen by >= 2 input views, by exactly 1, by none
 VISIBILITY_TOL_MM = 0.1  # GT points lie on the GT mesh to float32 precision; this is far above it
@@ -37,11 +38,7 @@ def views_seeing(points_mm: np.ndarray, gt_vertices_mm: np.ndarray, gt_triangles
                  views: list[InputView], tol_mm: float = VISIBILITY_TOL_MM) -> np.ndarray:
     """How many of ``views`` see each of ``points_mm`` (N, 3), points on the GT surface
     given by the mesh; ``(N,)`` int."""
-    import open3d as o3d
-
-    scene = o3d.t.geometry.RaycastingScene()
-    scene.add_triangles(o3d.core.Tensor(np.asarray(gt_vertices_mm, np.float32)),
-                        o3d.core.Tensor(np.asarray(gt_triangles, np.uint32)))
+    caster = MeshCaster(gt_vertices_mm, gt_triangles)
     P = np.asarray(points_mm, np.float64)
     count = np.zeros(len(P), np.int64)
     for v in views:
@@ -55,7 +52,7 @@ def views_seeing(points_mm: np.ndarray, gt_vertices_mm: np.ndarray, gt_triangles
         length = np.linalg.norm(d, axis=1)
         # The ray stops tol_mm short of the point: a hit on it means something lies in front.
         rays = np.concatenate([np.broadcast_to(origin, d.shape), d * (1 - tol_mm / length)[:, None]], 1)
-        blocked = scene.test_occlusions(o3d.core.Tensor(rays.astype(np.float32)), tfar=1.0).numpy()
+        blocked = caster.occluded(rays)
         count[idx[~blocked]] += 1
     return count
 

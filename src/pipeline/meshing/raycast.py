@@ -53,6 +53,12 @@ class MeshCaster:
         pts = origin + dirs_world * np.where(hit, t, np.nan)[..., None]
         return RayHits(depth_mm=np.where(hit, t, 0.0), normal_cam=n_cam, points_world=pts)
 
+    def occluded(self, rays: np.ndarray) -> np.ndarray:
+        """``(N,)`` bool: whether the surface meets each ray ``(N, 6)`` = origin, direction
+        (world mm) between its origin and origin + direction (Open3D ``tfar = 1``)."""
+        query = self._o3d.core.Tensor(np.asarray(rays, np.float32))
+        return self.scene.test_occlusions(query, tfar=1.0).numpy()
+
     def distance(self, points: np.ndarray) -> np.ndarray:
         """Unsigned distance (mm, float64 ``(N,)``) of world points ``(N, 3)`` to the surface."""
         query = self._o3d.core.Tensor(np.asarray(points, np.float32))

@@ -78,13 +78,22 @@ def render_depths_mm(params: SurfelParams, scene: Scene, world_to_cam_mm: np.nda
     return np.stack(depths), np.stack(colors)
 
 
+def input_view_depths_mm(params: SurfelParams, scene: Scene, cfg: MeshConfig,
+                         backend: str = "cpu") -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """What the mesh stage fuses at the input views: ``(depths, colours, masks)`` of
+    :func:`render_depths_mm` with ``cfg.depth`` and ``cfg.alpha_min``, masked by the scene's
+    masks when ``cfg.masks`` and it has them (``masks``: those masks, else ``None``)."""
+    masks = scene.masks if (cfg.masks and scene.masks is not None) else None
+    depths, colours = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height,
+                                       cfg.depth, cfg.alpha_min, backend, masks)
+    return depths, colours, masks
+
+
 def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backend: str = "cpu") -> tuple[tsdf.Mesh, dict]:
     """Cleaned TSDF mesh (world mm) of surfels rendered at every input view (masked when
     ``cfg.masks`` and the scene has masks) and ``cfg.virtual_per_pair`` virtual views between
     each pair of input views (unmasked: no mask exists there). Returns the mesh and facts."""
-    masks = scene.masks if (cfg.masks and scene.masks is not None) else None
-    d_in, c_in = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height, cfg.depth,
-                                  cfg.alpha_min, backend, masks)
+    d_in, c_in, masks = input_view_depths_mm(params, scene, cfg, backend)
     Ts, Ks, ds, cs = [scene.world_to_cam], [scene.K], [d_in], [c_in]
     if cfg.virtual_per_pair > 0:
         T_v = virtual_world_to_cams(scene.world_to_cam, scene.norm_to_world[:3, 3], cfg.virtual_per_pair)

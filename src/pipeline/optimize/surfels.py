@@ -147,28 +147,41 @@ def ply_attribute_names(num_rest: int) -> list[str]:
             + [f"rot_{i}" for i in range(4)])
 
 
-def write_surfel_ply(path: str | Path, params: SurfelParams, norm_to_world: np.ndarray) -> Path:
-    """Write surfels in the world frame (mm) with 2DGS's attribute names (atomic)."""
-    S = np.asarray(norm_to_world, np.float64)
-    s = float(S[0, 0])
-    with torch.no_grad():
-        means = params.means.double().numpy() @ S[:3, :3].T + S[:3, 3]
-        log_scales = params.log_scales.double().numpy() + math.log(s)
-        quats = torch.nn.functional.normalize(params.quats.double(), dim=1).numpy()
-        dc = params.sh_dc.double().numpy().reshape(params.num, 3)
-        rest = params.sh_rest.double().numpy().transpose(0, 2, 1).reshape(params.num, -1)
-        opac = params.opacity_logits.double().numpy()[:, None]
+def _world_columns(params: SurfelParams, norm_to_world: np.ndarray) -> dict[str, np.ndarray]:
+    """Per-surfel float64 columns in the world frame: ``means``, ``normals``, ``dc``,
+    ``rest`` (channel-major), ``opacity`` (logit), ``log_scales`` and unit ``quats`` (wxyz)."""
     from pipeline.rasterizer.project import quat_to_rotmat
 
-    normals = quat_to_rotmat(torch.from_numpy(quats))[:, :, 2].numpy()
-    cols = [means, normals, dc, rest, opac, log_scales, quats]
-    data = np.concatenate(cols, axis=1).astype("<f4")
-    names = ply_attribute_names(params.sh_rest.shape[1])
-    header = ("ply\nformat binary_little_endian 1.0\ncomment gcgs surfels (2DGS layout): world frame, millimetres\n"
-              f"element vertex {params.num}\n" + "".join(f"property float {n}\n" for n in names) + "end_header\n")
+    S = np.asarray(norm_to_world, np.float64)
+    with torch.no_grad():
+        quats = torch.nn.functional.normalize(params.quats.double(), dim=1).numpy()
+        return {
+            "means": params.means.double().numpy() @ S[:3, :3].T + S[:3, 3],
+            "normals": quat_to_rotmat(torch.from_numpy(quats))[:, :, 2].numpy(),
+            "dc": params.sh_dc.double().numpy().reshape(params.num, 3),
+            "rest": params.sh_rest.double().numpy().transpose(0, 2, 1).reshape(params.num, -1),
+            "opacity": params.opacity_logits.double().numpy()[:, None],
+            "log_scales": params.log_scales.double().numpy() + math.log(float(S[0, 0])),
+            "quats": quats,
+        }
+
+
+def _write_float_ply(path: str | Path, names: list[str], columns: list[np.ndarray], comment: str) -> Path:
+    """A binary little-endian PLY of one ``vertex`` element, every property float32 (atomic)."""
+    data = np.concatenate(columns, axis=1).astype("<f4")
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment {comment}\nelement vertex {len(data)}\n"
+              + "".join(f"property float {n}\n" for n in names) + "end_header\n")
     path = Path(path)
     atomic.write_bytes(path, header.encode("ascii") + data.tobytes())
     return path
+
+
+def write_surfel_ply(path: str | Path, params: SurfelParams, norm_to_world: np.ndarray) -> Path:
+    """Write surfels in the world frame (mm) with 2DGS's attribute names (atomic)."""
+    c = _world_columns(params, norm_to_world)
+    return _write_float_ply(path, ply_attribute_names(params.sh_rest.shape[1]),
+                            [c["means"], c["normals"], c["dc"], c["rest"], c["opacity"], c["log_scales"], c["quats"]],
+                            "gcgs surfels (2DGS layout): world frame, millimetres")
 
 
 # A viewer of 3DGS files draws 3D Gaussians; a surfel is flat, so its third axis (the
@@ -190,25 +203,11 @@ def write_splats_3dgs_ply(path: str | Path, params: SurfelParams, norm_to_world:
     (:func:`splats_3dgs_attribute_names`; log scales, logit opacity, wxyz unit quaternions,
     SH channel-major), in the world frame and units, each surfel a Gaussian whose third
     log-scale (along its normal) is ``log(THICKNESS_RATIO)`` below its smaller one."""
-    S = np.asarray(norm_to_world, np.float64)
-    with torch.no_grad():
-        means = params.means.double().numpy() @ S[:3, :3].T + S[:3, 3]
-        log_scales = params.log_scales.double().numpy() + math.log(float(S[0, 0]))
-        quats = torch.nn.functional.normalize(params.quats.double(), dim=1).numpy()
-        dc = params.sh_dc.double().numpy().reshape(params.num, 3)
-        rest = params.sh_rest.double().numpy().transpose(0, 2, 1).reshape(params.num, -1)
-        opac = params.opacity_logits.double().numpy()[:, None]
-    from pipeline.rasterizer.project import quat_to_rotmat
-
-    normals = quat_to_rotmat(torch.from_numpy(quats))[:, :, 2].numpy()
-    thick = log_scales.min(axis=1, keepdims=True) + math.log(THICKNESS_RATIO)
-    data = np.concatenate([means, normals, dc, rest, opac, log_scales, thick, quats], axis=1).astype("<f4")
-    names = splats_3dgs_attribute_names(params.sh_rest.shape[1])
-    header = ("ply\nformat binary_little_endian 1.0\ncomment gcgs surfels as 3D Gaussians (3DGS layout): world frame\n"
-              f"element vertex {params.num}\n" + "".join(f"property float {n}\n" for n in names) + "end_header\n")
-    path = Path(path)
-    atomic.write_bytes(path, header.encode("ascii") + data.tobytes())
-    return path
+    c = _world_columns(params, norm_to_world)
+    thick = c["log_scales"].min(axis=1, keepdims=True) + math.log(THICKNESS_RATIO)
+    return _write_float_ply(path, splats_3dgs_attribute_names(params.sh_rest.shape[1]),
+                            [c["means"], c["normals"], c["dc"], c["rest"], c["opacity"], c["log_scales"], thick,
+                             c["quats"]], "gcgs surfels as 3D Gaussians (3DGS layout): world frame")
 
 
 def read_surfel_ply(path: str | Path, norm_to_world: np.ndarray, dtype=torch.float32) -> SurfelParams:

@@ -34,6 +34,7 @@ from pipeline import atomic
 from pipeline.config import LossConfig, OptimizeConfig
 from pipeline.errors import Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
+from pipeline.mvphoto import SourceView, multiview_consistency
 from pipeline.optimize import ops, terms
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
 from pipeline.optimize.surfels import SurfelParams
@@ -276,8 +277,6 @@ class Trainer:
     def _multiview(self, i: int, v, out, surface: torch.Tensor) -> dict[str, torch.Tensor]:
         """L_mv's photometric and geometric parts on a seeded random subset of the surface
         pixels of view ``i``, the other input views as sources (:mod:`pipeline.mvphoto`)."""
-        from pipeline.mvphoto import SourceView, multiview_consistency
-
         cfg, lw, views = self.cfg, self.loss, self.views
         ys, xs = torch.nonzero(surface, as_tuple=True)
         if 0 < cfg.mv_max_points < len(xs):
@@ -295,10 +294,9 @@ class Trainer:
             sources.append(SourceView(K_full=torch.from_numpy(S.K[j]).float(),
                                       ref_to_src=(w2c_j @ ref_from).float(), grey_full=views.grey_full[j],
                                       depth_train=depth_j, K_train=K_j))
-        result = multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
-                                       views.grey_full[i], sources, patch=lw.mv_patch,
-                                       min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px)
-        return result
+        return multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
+                                     views.grey_full[i], sources, patch=lw.mv_patch,
+                                     min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px)
 
     def _degenerate(self) -> torch.Tensor:
         """Surfels with non-finite parameters or gradients, or a degenerate scale. The

@@ -61,18 +61,18 @@ def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) 
                   f"| mask IoU of the surfels (alpha > 0.5) | {_fmt(h.iou_mean, 3)} |",
                   f"| mask IoU of the visual hull of the input masks (reference) | {_fmt(h.hull_iou_mean, 3)} |",
                   f"| PSNR over the mask (dB) | {_fmt(h.psnr_masked_db_mean, 2)} |", ""]
-    render = reports / "renders" / f"{name}.png"
-    if render.is_file():
-        lines += [f"![{name}: input view, rendered colour, rendered normal, mesh](renders/{name}.png)", "",
-                  "Left to right, at the first input view: the input image, the trained surfels' rendered colour "
-                  "and normals (camera frame, (n + 1) / 2 with x right, y up, z to the viewer), the extracted "
-                  "mesh lit from the camera.", ""]
-    heldout = reports / "renders" / f"{name}_heldout.png"
-    if heldout.is_file():
-        lines += [f"![{name}: mesh silhouette over held-out masks](renders/{name}_heldout.png)", "",
-                  "Held-out views, the mesh's silhouette over each view's mask on the dimmed image: grey where "
-                  "both cover a pixel, red where only the mask does (missed), blue where only the mesh does "
-                  "(extra); the IoU printed is the mesh's.", ""]
+    pictures = (
+        ("", "input view, rendered colour, rendered normal, mesh",
+         "Left to right, at the first input view: the input image, the trained surfels' rendered colour and normals "
+         "(camera frame, (n + 1) / 2 with x right, y up, z to the viewer), the extracted mesh lit from the camera."),
+        ("_heldout", "mesh silhouette over held-out masks",
+         "Held-out views, the mesh's silhouette over each view's mask on the dimmed image: grey where both cover a "
+         "pixel, red where only the mask does (missed), blue where only the mesh does (extra); the IoU printed is "
+         "the mesh's."),
+    )
+    for suffix, alt, caption in pictures:
+        if (reports / "renders" / f"{name}{suffix}.png").is_file():
+            lines += [f"![{name}: {alt}](renders/{name}{suffix}.png)", "", caption, ""]
     curves = sorted((reports / "train" / name / "plots" / "metrics" / "train").glob("*.tsv"))
     if curves:
         links = ", ".join(f"[{c.stem}]({c.relative_to(reports).as_posix()})" for c in curves)

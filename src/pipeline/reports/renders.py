@@ -251,3 +251,24 @@ def write_png(path: str | Path, rgb: np.ndarray) -> None:
         raise RuntimeError(f"{path}: PNG encoding failed")
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     atomic.write_bytes(path, data.tobytes())
+
+
+def render_scene(scene_dir: str | Path, surfels_ply: str | Path, mesh: str | Path, out: str | Path,
+                 panel_width: int = PANEL_WIDTH, background: float = 0.0, backend: str = "cpu",
+                 src_dir: str | Path | None = None, heldout_out: str | Path | None = None,
+                 heldout_views: int = HELDOUT_VIEWS, log=print) -> HeldoutOverlay | None:
+    """Files to files: :func:`scene_panels` -> ``out`` and, with ``src_dir``,
+    :func:`heldout_overlay` -> ``heldout_out``; the mesh is read once, and both pictures are
+    made before either is written, so a failure leaves neither half-updated."""
+    if (src_dir is None) != (heldout_out is None):
+        raise ValueError("src_dir and heldout_out go together")
+    caster = mesh_caster(mesh)
+    rgb = scene_panels(scene_dir, surfels_ply, caster, panel_width, background, backend)
+    held = heldout_overlay(scene_dir, src_dir, caster, panel_width, heldout_views) if src_dir is not None else None
+    write_png(out, rgb)
+    log(f"[render-scene] {scene_dir}: {rgb.shape[1]}x{rgb.shape[0]} -> {out}")
+    if held is not None:
+        write_png(heldout_out, held.rgb)
+        ious = ", ".join(f"{v.view}: {v.iou:.3f}" for v in held.views)
+        log(f"[render-scene] held-out views (mesh IoU) {ious}: {held.rgb.shape[1]}x{held.rgb.shape[0]} -> {heldout_out}")
+    return held

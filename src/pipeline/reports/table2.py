@@ -131,6 +131,10 @@ def _mark(v: bool | None) -> str:
     return "—" if v is None else ("yes" if v else "no")
 
 
+def _header(columns: list[str]) -> list[str]:
+    return ["| " + " | ".join(columns) + " |", "|" + " --- |" * len(columns)]
+
+
 def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[dict] | None = None) -> str:
     head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", *scenes, "mean", "seeds"]
     lines = ["# Table II: ablation on the synthetic suite (overall Chamfer, mm; lower is better)", "",
@@ -140,8 +144,7 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
              "invents nothing would score; the yardstick, not a method, so not in bold), the classical "
              "baseline, the variants of params `ablation.run` (conf/ablation), the full method. A row "
              "run with several training seeds gives the mean over them and ± half their range: a "
-             "difference between two rows smaller than their spreads is none.", "",
-             "| " + " | ".join(head) + " |", "|" + " --- |" * len(head)]
+             "difference between two rows smaller than their spreads is none.", "", *_header(head)]
     best = min(r["mean"] for r in rows if r["row"] != LIMIT)
     for r in rows:
         def fig(key, bold=False):
@@ -154,7 +157,7 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
     lines += ["", "**Accuracy / completeness** (mm): the two halves of each overall figure. The 3-view "
               "limit's accuracy is near zero by construction, and its completeness is what the surface "
               "no input view sees costs; a row's distance to it on each side says where it loses.", "",
-              "| row | " + " | ".join(scenes) + " | mean |", "|" + " --- |" * (len(scenes) + 2)]
+              *_header(["row", *scenes, "mean"])]
     for r in rows:
         lines.append(f"| {r['row']} | " + " | ".join(f"{r['accuracy'][s]:.3f} / {r['completeness'][s]:.3f}"
                                                      for s in (*scenes, "mean")) + " |")
@@ -162,8 +165,7 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
               "there): mesh points whose nearest GT point at least two input views see "
               "(`pipeline.evaluation.seen`), the surface the views triangulate. A row worse here than "
               "MVS+TSDF has moved well-seen surface away from where the views put it (drift), which no "
-              "guess at unseen surface explains.", "",
-              "| row | " + " | ".join(scenes) + " | mean |", "|" + " --- |" * (len(scenes) + 2)]
+              "guess at unseen surface explains.", "", *_header(["row", *scenes, "mean"])]
     for r in rows:
         if not all(math.isfinite(r["seen2"][s]) for s in scenes):
             continue
@@ -173,8 +175,7 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
               "within `evaluate.max_dist_mm` of the mesh. The DTU protocol leaves the others out of "
               "completeness, so a mesh that omits a region it cannot reconstruct (the classical "
               "baseline on the textureless dome) is not charged for it; the ground truth also holds "
-              "sides that no input view sees, so no row reaches 1.", "",
-              "| row | " + " | ".join(scenes) + " |", "|" + " --- |" * (len(scenes) + 1)]
+              "sides that no input view sees, so no row reaches 1.", "", *_header(["row", *scenes])]
     for r in rows:
         lines.append(f"| {r['row']} | " + " | ".join(f"{r['covered'][s]:.2f}" for s in scenes) + " |")
     if published:
@@ -184,7 +185,7 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
                   "(DSINE, Vis-MVSNet). Figures transcribed from the paper (`data/published/"
                   "gcgs_table2_ablation.csv`); they are on other scenes and another init than the rows above, "
                   "so compare each table's pattern, not cells across tables.", "",
-                  "| dense init (MASt3R) | L_gcf | L_nor | mean (DTU, published) |", "| --- | --- | --- | --- |"]
+                  *_header(["dense init (MASt3R)", "L_gcf", "L_nor", "mean (DTU, published)"])]
         lines += [f"| {_mark(p['dense_init'])} | {_mark(p['gcf'])} | {_mark(p['nor'])} | {p['mean_mm']:.2f} |"
                   for p in published]
     return "\n".join(lines) + "\n"

@@ -13,7 +13,7 @@ from pipeline.evaluation import dtu_eval, gt, seen
 from pipeline.evaluation.depth_error import depth_errors, gt_depths_mm
 from pipeline.evaluation.heldout import heldout_scores
 from pipeline.evaluation.record import MESH_KEYS, TIMING_KEYS, TRAIN_KEYS, Chamfer, HeldOut, SceneMetrics
-from pipeline.meshing.surfels import render_depths_mm
+from pipeline.meshing.surfels import input_view_depths_mm
 from pipeline.optimize.surfels import read_surfel_ply
 
 HELDOUT_WIDTH = 200  # px; the bundled scan24 held-out views are stored at 200x150
@@ -57,8 +57,6 @@ def _input_depth_error(scene_dir: Path, surfels_dir: Path, gt_mesh: Path, mesh_c
         return None
     scene = dtu.load_scene(scene_dir)
     params = read_surfel_ply(surfels_dir / "surfels.ply", scene.norm_to_world)
-    masks = scene.masks if (mesh_cfg.masks and scene.masks is not None) else None
-    depths, _ = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height,
-                                 mesh_cfg.depth, mesh_cfg.alpha_min, backend, masks)
+    depths, _, masks = input_view_depths_mm(params, scene, mesh_cfg, backend)
     truth = gt_depths_mm(*gt.read_mesh(gt_mesh), scene.K, scene.world_to_cam, scene.width, scene.height)
     return depth_errors(depths, truth, masks)

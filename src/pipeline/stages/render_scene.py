@@ -8,7 +8,7 @@ import argparse
 
 from pipeline.config import OptimizeConfig, load_params, section
 from pipeline.errors import ConfigError
-from pipeline.reports.renders import HELDOUT_VIEWS, PANEL_WIDTH, heldout_overlay, mesh_caster, scene_panels, write_png
+from pipeline.reports.renders import HELDOUT_VIEWS, PANEL_WIDTH, render_scene
 from pipeline.rasterizer import resolve_backend
 
 
@@ -33,18 +33,6 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--panel-width ({args.panel_width}) and --heldout-views ({args.heldout_views}) "
                           "must be positive")
     opt = section(OptimizeConfig, "optimize", load_params(args.params))
-    caster = mesh_caster(args.mesh)  # once for both pictures; a missing mesh stops here
-    rgb = scene_panels(args.scene, args.surfels, caster, args.panel_width, opt.background,
-                       resolve_backend(opt.backend))
-    held = None
-    if args.src is not None:
-        held = heldout_overlay(args.scene, args.src, caster, args.panel_width, args.heldout_views)
-    # Written only once both are made: a failure leaves neither picture half-updated.
-    write_png(args.out, rgb)
-    print(f"[render-scene] {args.scene}: {rgb.shape[1]}x{rgb.shape[0]} -> {args.out}")
-    if held is not None:
-        write_png(args.heldout_out, held.rgb)
-        ious = ", ".join(f"{v.view}: {v.iou:.3f}" for v in held.views)
-        print(f"[render-scene] held-out views (mesh IoU) {ious}: {held.rgb.shape[1]}x{held.rgb.shape[0]} "
-              f"-> {args.heldout_out}")
+    render_scene(args.scene, args.surfels, args.mesh, args.out, args.panel_width, opt.background,
+                 resolve_backend(opt.backend), args.src, args.heldout_out, args.heldout_views)
     return 0
