@@ -141,6 +141,23 @@ def test_prepare_cli_views_and_init_read_back(tmp_path, capsys):
     assert (tmp_path / "init" / "points.ply").is_file()
 
 
+def test_prepare_no_masks_leaves_the_sources_masks_out(tmp_path, capsys):
+    """`--no-masks`: the scene is written as from a capture without masks (docs/inputs.md)."""
+    import json
+
+    from pipeline.cli import main
+
+    src = _scan_in_size(tmp_path, 80, 60)
+    out = tmp_path / "prepared"
+    assert main(["prepare", "--src", str(src), "--out", str(out), "--views", "0", "1", "--width", "40",
+                 "--no-masks"]) == 0
+    assert "no masks" in capsys.readouterr().out
+    assert dtu.load_scene(out, view_ids=None).masks is None and not (out / "mask").exists()
+    assert json.loads((out / "scene.json").read_text())["masks_ignored"] is True
+    with_masks = prepare_scene(src, tmp_path / "masked", DataConfig(views=[0, 1], width=40, height=30))
+    assert with_masks.masks is not None
+
+
 def test_prepare_keeps_the_aspect_ratio_of_a_5_4_source(tmp_path, capsys):
     """A 1280x1024 (5:4) source: the default 800x600 (4:3) is refused with a message
     naming the file and both ratios; --width alone derives the height."""

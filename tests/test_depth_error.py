@@ -28,6 +28,9 @@ def test_figures_match_a_pixel_by_pixel_count():
     assert got["mean_abs_mm"] == pytest.approx(sum(abs(e) for e in near) / len(near))
     assert got["share_above_1mm"] == pytest.approx(sum(abs(e) > 1 for e in pairs) / len(pairs))
     assert got["outliers"] == pytest.approx(4 / len(pairs))
+    assert got["outliers_in_front"] == pytest.approx(2 / len(pairs))
+    far = [abs(e) for e in pairs if abs(e) > MAX_ERR_MM]
+    assert got["outlier_error_share"] == pytest.approx(sum(far) / sum(abs(e) for e in pairs))
     assert 0.2 < got["signed_median_mm"] < 0.4  # the bias put in: behind the truth
 
 
@@ -35,6 +38,7 @@ def test_no_overlap_gives_nan_and_bad_shapes_are_refused():
     gt = np.full((1, 4, 4), 500.0)
     got = depth_errors(np.zeros_like(gt), gt)
     assert got["coverage"] == 0.0 and math.isnan(got["median_abs_mm"]) and math.isnan(got["signed_median_mm"])
+    assert math.isnan(got["outliers_in_front"]) and math.isnan(got["outlier_error_share"])
     with pytest.raises(ValueError, match=r"\(N, H, W\)"):
         depth_errors(np.zeros((4, 4)), np.zeros((4, 4)))
     with pytest.raises(ValueError, match="masks must be"):

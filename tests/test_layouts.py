@@ -8,14 +8,13 @@ import math
 
 import cv2
 import numpy as np
-import pycolmap
 import pytest
 import torch
 from plyfile import PlyData
 
 from pipeline import geometry
 from pipeline.config import DataConfig
-from pipeline.data import dtu
+from pipeline.data import dtu, export
 from pipeline.data.capture import sphere_from_cameras
 from pipeline.data.layouts import detect
 from pipeline.data.prepare import prepare_scene
@@ -24,7 +23,6 @@ from pipeline.optimize.surfels import THICKNESS_RATIO, init_params, splats_3dgs_
 
 W, H = 80, 60
 SOURCE_VIEWS = (22, 23, 24, 33, 34)  # scan24 cameras of the synthetic capture: view ids 0..4 here
-GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
 def _cameras(bundled_scan):
@@ -65,59 +63,23 @@ def write_dtu(root, K, T, S, imgs, masks):
     return root
 
 
-def _colmap_reconstruction(K, T, points, model="PINHOLE", extra=()):
-    rec = pycolmap.Reconstruction()
-    for v in sorted(K):
-        k = K[v]
-        # COLMAP's pixel centres sit at +0.5
-        params = [k[0, 0], k[1, 1], k[0, 2] + 0.5, k[1, 2] + 0.5, *extra]
-        if model == "SIMPLE_PINHOLE":
-            params = [k[0, 0], k[0, 2] + 0.5, k[1, 2] + 0.5]
-        rec.add_camera_with_trivial_rig(pycolmap.Camera(model=model, width=W, height=H, params=params,
-                                                        camera_id=v + 1))
-        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(T[v][:3, :3]), T[v][:3, 3])
-        # image ids in another order than names: view ids must follow the names
-        rec.add_image_with_trivial_frame(pycolmap.Image(name=f"{v:04d}.png", camera_id=v + 1, image_id=10 - v), pose)
-    for p in points:
-        rec.add_point3D(p, pycolmap.Track(), np.array([128, 128, 128], np.uint8))
-    return rec
-
-
-def write_colmap(root, K, T, S, imgs, masks, binary=False, mask_naming="colmap", **kw):
+def write_colmap(root, K, T, S, imgs, masks, binary=False, mask_naming="colmap", model="PINHOLE", extra=()):
+    """The capture through :func:`pipeline.data.export.write_colmap` (pycolmap's own writer),
+    with 200 points around the scan's sphere centre and image ids in another order than the
+    names (view ids must follow the names)."""
     rng = np.random.default_rng(1)
     points = S[:3, 3] + rng.normal(size=(200, 3)) * S[0, 0] * 0.3
-    rec = _colmap_reconstruction(K, T, points, **kw)
-    model = root / "sparse" / "0"
-    model.mkdir(parents=True)
-    (rec.write_binary if binary else rec.write_text)(str(model))
-    for v, img in imgs.items():
-        _write_png(root / "images" / f"{v:04d}.png", img)
-    if masks:
-        for v, m in masks.items():
-            name = f"{v:04d}.png.png" if mask_naming == "colmap" else f"{v:04d}.png"
-            _write_png(root / "masks" / name, m)
+    export.write_colmap(root, K, T, (W, H), imgs, masks, points, binary=binary, camera_model=model, extra_params=extra,
+                        mask_naming=mask_naming, image_ids={v: 10 - v for v in K})
     return root
 
 
 def write_nerfstudio(root, K, T, imgs, masks, per_frame=False, dist=None):
-    frames = []
-    for v in sorted(K):
-        c2w_gl = geometry.rigid_inverse(T[v]) @ GL_TO_CV
-        f = {"file_path": f"images/frame_{v:05d}.png", "transform_matrix": c2w_gl.tolist()}
-        if masks:
-            f["mask_path"] = f"masks/frame_{v:05d}.png"
-            _write_png(root / f["mask_path"], masks[v])
-        if per_frame:
-            k = K[v]
-            f.update(fl_x=k[0, 0], fl_y=k[1, 1], cx=k[0, 2] + 0.5, cy=k[1, 2] + 0.5, w=W, h=H)
-        _write_png(root / f["file_path"], imgs[v])
-        frames.append(f)
-    meta = {"camera_model": "OPENCV", "frames": frames[::-1]}  # file order must not matter
-    if not per_frame:
-        k = K[0]
-        meta.update(fl_x=k[0, 0], fl_y=k[1, 1], cx=k[0, 2] + 0.5, cy=k[1, 2] + 0.5, w=W, h=H)
-    if dist:
-        meta.update(dist)
+    """The capture through :func:`pipeline.data.export.write_nerfstudio`, its frames then
+    listed in reverse order (file order must not matter)."""
+    export.write_nerfstudio(root, K, T, (W, H), imgs, masks, per_frame=per_frame, distortion=dist)
+    meta = json.loads((root / "transforms.json").read_text())
+    meta["frames"] = meta["frames"][::-1]
     (root / "transforms.json").write_text(json.dumps(meta))
     return root
 

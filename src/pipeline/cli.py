@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-raster": ("pipeline.benchmarks.rasterizer", "benchmark the surfel rasterizer"),
     "bench-priors": ("pipeline.benchmarks.priors", "benchmark the priors stage and the prior losses"),
     "bench-gcf": ("pipeline.benchmarks.gcf_offset", "GCF loss against a depth offset (minimum at the true depth?)"),
+    "bench-layouts": ("pipeline.benchmarks.layouts", "one synthetic scene from the DTU, COLMAP and nerfstudio layouts: same Chamfer?"),
 }
 
 

@@ -261,8 +261,17 @@ class MeshConfig:
     alpha_min: float = 0.5  # pixels with less accumulated alpha have no depth
     masks: bool = True  # zero the depth outside the input views' masks (where the scene has masks)
     virtual_per_pair: int = 0  # virtual views rendered between each pair of input views
+    # Bounding region for depth fused without masks (meshing/region.py): the unit sphere and,
+    # when the depth shows one, the half-space above the support plane (the table).
+    region: str = "auto"  # auto (when no mask cuts the fused depth) | on | off
+    region_plane_share: float = 0.15  # a plane is the table when at least this share of depth points lie on it
+    region_plane_margin_norm: float = 0.008  # the region starts this far above the table (unit-sphere radii)
 
     def __post_init__(self) -> None:
+        if self.region not in ("auto", "on", "off"):
+            raise ConfigError(f"mesh.region must be auto, on or off, got {self.region!r}")
+        if not 0 < self.region_plane_share <= 1 or self.region_plane_margin_norm < 0:
+            raise ConfigError("mesh: region_plane_share must be in (0, 1] and region_plane_margin_norm >= 0")
         if self.depth not in ("median", "expected"):
             raise ConfigError(f"mesh.depth must be median or expected, got {self.depth!r}")
         if not 0 <= self.alpha_min < 1 or self.virtual_per_pair < 0:

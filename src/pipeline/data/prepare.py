@@ -64,17 +64,24 @@ def check_size(src: Path, stored: tuple[int, int], width: int, height: int, warn
 
 def prepare_scene(
     src: str | Path, out: str | Path, cfg: DataConfig, name: str | None = None, extra_meta: dict | None = None,
-    warn: Callable[[str], None] = print_warning,
+    warn: Callable[[str], None] = print_warning, use_masks: bool = True,
 ) -> Scene:
     """Load ``src`` at ``cfg.views`` / ``cfg.width x cfg.height`` and write it to ``out`` (a
     gcgs ``scene`` output: never the source or a folder gcgs did not write). Every check
-    runs before anything is written."""
+    runs before anything is written. ``use_masks=False`` leaves the source's masks out, as
+    if the capture had none (docs/inputs.md, "Without masks")."""
     src = Path(src)
+    extra_meta = dict(extra_meta or {})
+    if not use_masks:
+        extra_meta["masks_ignored"] = True
     with atomic_dir(out, "scene", inputs=(src,)) as tmp:
         if layouts.detect(src) != "dtu":
-            scene = _prepare_capture(layouts.read_capture(src), tmp, cfg, name, extra_meta, warn)
+            cap = layouts.read_capture(src)
+            if not use_masks:
+                cap.masks = None
+            scene = _prepare_capture(cap, tmp, cfg, name, extra_meta, warn)
         else:
-            scene = _prepare_dtu(src, tmp, cfg, name, extra_meta, warn)
+            scene = _prepare_dtu(src, tmp, cfg, name, extra_meta, warn, use_masks)
     return scene
 
 
@@ -85,12 +92,13 @@ def _check_views(src: Path, cfg: DataConfig) -> None:
 
 
 def _prepare_dtu(src: Path, tmp: Path, cfg: DataConfig, name: str | None, extra_meta: dict | None,
-                 warn: Callable[[str], None]) -> Scene:
+                 warn: Callable[[str], None], use_masks: bool = True) -> Scene:
     stored_w, stored_h = dtu.stored_image_size(src)  # all cameras are for this size
     check_aspect(src, (stored_w, stored_h), cfg.width, cfg.height)
     check_size(src, (stored_w, stored_h), cfg.width, cfg.height, warn)
     _check_views(src, cfg)
-    scene = dtu.load_scene(src, view_ids=cfg.views, resolution=(cfg.width, cfg.height), name=name)
+    scene = dtu.load_scene(src, view_ids=cfg.views, resolution=(cfg.width, cfg.height), name=name,
+                           with_masks=use_masks)
     if scene.masks is not None:
         for v, m in zip(scene.view_ids, scene.masks):
             if not m.any():

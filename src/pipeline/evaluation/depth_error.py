@@ -32,13 +32,17 @@ def depth_errors(depths_mm: np.ndarray, gt_depths_mm: np.ndarray, masks: np.ndar
     coverage = float((region & (d > 0)).sum() / max(region.sum(), 1))
     if not len(err):
         return {"coverage": coverage, **dict.fromkeys(
-            ("median_abs_mm", "share_above_1mm", "outliers", "signed_median_mm", "mean_abs_mm"), math.nan)}
+            ("median_abs_mm", "share_above_1mm", "outliers", "outliers_in_front", "outlier_error_share",
+             "signed_median_mm", "mean_abs_mm"), math.nan)}
     near = err[np.abs(err) <= MAX_ERR_MM]
+    total = float(np.abs(err).sum())
     return {
         "coverage": coverage,
         "median_abs_mm": float(np.median(np.abs(err))),
         "share_above_1mm": float(np.mean(np.abs(err) > 1.0)),
         "outliers": float(np.mean(np.abs(err) > MAX_ERR_MM)),
+        "outliers_in_front": float(np.mean(err < -MAX_ERR_MM)),
+        "outlier_error_share": float(np.abs(err[np.abs(err) > MAX_ERR_MM]).sum() / total) if total > 0 else 0.0,
         "signed_median_mm": float(np.median(near)) if len(near) else math.nan,
         "mean_abs_mm": float(np.mean(np.abs(near))) if len(near) else math.nan,
     }

@@ -18,6 +18,7 @@ from pipeline.config import MeshConfig
 from pipeline.data.dtu import load_scene
 from pipeline.errors import InputError
 from pipeline.init.io import load_init_depths
+from pipeline.meshing import region as bounding
 
 # Cleaning that drops more than this fraction of the fused triangles gets a warning: a
 # real object may have lost a part (raise min_component_fraction's reach by lowering it).
@@ -181,14 +182,17 @@ def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, cfg: MeshConfig)
     # Farthest depth worth integrating: the far side of the scene sphere from any camera.
     centre = scene.norm_to_world[:3, 3]
     depth_max = max(np.linalg.norm(geometry.camera_center(m.world_to_cam) - centre) for m in maps) + scene.norm_scale_mm
-    mesh = fuse_depth_maps(
-        np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps]), scene.K, scene.world_to_cam, scene.images,
-        voxel, trunc, depth_max)
+    depths, region, region_facts = bounding.cut_to_region(
+        np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps]), scene.K, scene.world_to_cam, scene.norm_to_world,
+        cfg, masked=scene.masks is not None)
+    mesh = fuse_depth_maps(depths, scene.K, scene.world_to_cam, scene.images, voxel, trunc, depth_max)
+    if region is not None:
+        mesh.triangles = bounding.crop_mesh_vertices(mesh.vertices_mm, mesh.triangles, region)
     mesh, facts = keep_components(mesh, cfg.min_component_fraction)
     if len(mesh.triangles) == 0:
         raise FusionError(f"{init_dir}: the depth maps fuse into an empty mesh; nothing written")
     info = {"voxel_mm": voxel, "trunc_mm": trunc, "depth_max_mm": float(depth_max), "views": scene.view_ids,
-            **facts, "vertices": len(mesh.vertices_mm), "min_component_fraction": cfg.min_component_fraction}
+            **region_facts, **facts, "vertices": len(mesh.vertices_mm), "min_component_fraction": cfg.min_component_fraction}
     return mesh, info
 
 

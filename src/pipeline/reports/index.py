@@ -51,6 +51,10 @@ def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) 
             lines.append(f"| depth the mesh is fused from, at the input views, against the GT's: median abs error "
                          f"(signed median; share above 1 mm) | {_fmt(e.get('median_abs_mm'), 3)} "
                          f"({_fmt(e.get('signed_median_mm'), 3)}; {_fmt(e.get('share_above_1mm'), 2)}) |")
+            if e.get("outliers") is not None:
+                lines.append(f"| pixels off by more than 5 mm (of them in front of the truth; their share of the "
+                             f"summed absolute error) | {_fmt(e.get('outliers'), 3)} ({_fmt(e.get('outliers_in_front'), 3)}; "
+                             f"{_fmt(e.get('outlier_error_share'), 2)}) |")
         lines.append("")
         if not c.valid:
             lines += [f"Evaluation flagged invalid: {'; '.join(c.problems)}", ""]

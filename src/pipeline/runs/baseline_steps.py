@@ -41,7 +41,9 @@ def tsdf_mesh(init_dir: Path, scene_dir: Path, cfg: MeshConfig, out_ply: Path) -
 
 def mesh_chamfer(mesh_ply: Path, scene_dir: Path, gt_dir: Path, cfg: EvaluateConfig, views: list[int],
                  out_json: Path) -> None:
-    """DTU Chamfer distance of the mesh, culled by ``views``' masks, written to ``out_json``."""
+    """DTU Chamfer distance of the mesh, culled by ``views``' masks, written to ``out_json``
+    (``mesh``: the mesh file's name, in the JSON's folder: the folder is written under a
+    temporary name, which must not end up in the output)."""
     from pipeline.data import dtu
     from pipeline.evaluation import dtu_eval, gt, seen
 
@@ -50,4 +52,4 @@ def mesh_chamfer(mesh_ply: Path, scene_dir: Path, gt_dir: Path, cfg: EvaluateCon
     vertices, triangles = gt.read_mesh(mesh_ply)
     metrics = dtu_eval.evaluate_mesh(vertices, triangles, ground, cfg, views=cull, log=None, name=str(mesh_ply),
                                      seen_views=seen.load_input_views(scene_dir, views))
-    dtu_eval.write_metrics(out_json, {**metrics, "mesh": str(mesh_ply), "scene": str(scene_dir), "gt": str(ground.root)})
+    dtu_eval.write_metrics(out_json, {**metrics, "mesh": mesh_ply.name, "scene": str(scene_dir), "gt": str(ground.root)})

@@ -16,7 +16,7 @@ from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_mas
 from pipeline.optimize.surfels import write_splats_3dgs_ply, write_surfel_ply
 from pipeline.optimize.train import TrainResult, train
 
-LOGGED_TERMS = ("total", "l1", "photo", "gcf", "nor", "mvs", "dn", "dist", "mask", "surfels", "seconds")
+LOGGED_TERMS = ("total", "l1", "photo", "gcf", "mv", "mvgeo", "nor", "mvs", "dn", "dist", "mask", "surfels", "seconds")
 
 
 def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path, out_dir: str | Path,
