@@ -32,7 +32,6 @@ import shutil
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from pipeline import geometry
@@ -54,23 +53,16 @@ def _put_image(src: ImageSource, dst: Path) -> None:
     dst.parent.mkdir(parents=True, exist_ok=True)
     if isinstance(src, (str, Path)):
         shutil.copyfile(src, dst)  # the same bytes: the same pixels for every reader
-        return
-    arr = np.asarray(src)
-    if arr.dtype == bool:
-        arr = arr.astype(np.uint8) * 255
-    elif arr.dtype != np.uint8:
-        arr = np.clip(np.round(arr * 255.0), 0, 255).astype(np.uint8)
-    if arr.ndim == 3:
-        arr = cv2.cvtColor(arr, cv2.COLOR_RGB2BGR)
-    if not cv2.imwrite(str(dst), arr):
-        raise OSError(f"{dst}: could not write image")
+    else:
+        dtu._write_png(dst, np.asarray(src))  # bool masks become 0 / 255
 
 
 def _suffix(src: ImageSource) -> str:
     return Path(src).suffix.lower() if isinstance(src, (str, Path)) else ".png"
 
 
-def _check_views(images: Mapping[int, ImageSource], K: Mapping[int, np.ndarray], where: str) -> list[int]:
+def _check_views(images: Mapping[int, ImageSource], K: Mapping[int, np.ndarray], where: str,
+                 masks: Mapping[int, ImageSource] | None = None) -> list[int]:
     views = sorted(int(v) for v in images)
     if views != list(range(len(views))):
         raise SceneError(f"{where}: views {views[:8]}... are not numbered 0..{len(views) - 1}; COLMAP and nerfstudio "
@@ -78,6 +70,9 @@ def _check_views(images: Mapping[int, ImageSource], K: Mapping[int, np.ndarray],
     missing = [v for v in views if v not in K]
     if missing:
         raise SceneError(f"{where}: no camera for views {missing[:5]}")
+    for v in views if masks else ():
+        if v not in masks:
+            raise SceneError(f"{where}: no mask for view {v} (a capture has a mask for every view or none)")
     return views
 
 
@@ -161,15 +156,13 @@ def write_colmap(out_dir: str | Path, K: Mapping[int, np.ndarray], world_to_cam:
     on the object. Cameras of views without an image are not written. A non-pinhole
     ``camera_model`` only labels the images: they must already have that lens. Returns
     facts (views, names, points, ``skew_dropped_px``)."""
-    views = _check_views(images, K, str(out_dir))
+    views = _check_views(images, K, str(out_dir), masks)
     names = _names(views, lambda v, w: f"{v:0{w}d}{_suffix(images[v])}")
     with atomic_dir(out_dir, KIND, inputs=inputs) as tmp:
         for v in views:
             _put_image(images[v], tmp / "images" / names[v])
         if masks:
             for v in views:
-                if v not in masks:
-                    raise SceneError(f"{out_dir}: no mask for view {v} (a capture has a mask for every view or none)")
                 name = f"{names[v]}.png" if mask_naming == "colmap" else f"{Path(names[v]).stem}.png"
                 _put_mask(masks[v], tmp / "masks" / name)
         rec = colmap_reconstruction(K, world_to_cam, size, names, points_world, camera_model, extra_params, image_ids)
@@ -212,7 +205,7 @@ def write_nerfstudio(out_dir: str | Path, K: Mapping[int, np.ndarray], world_to_
     frame when ``per_frame`` (default: when the views' intrinsics differ), else once at the
     top level; ``distortion`` (``k1 k2 p1 p2 k3``) is written at the top level as given (the
     images must already have that lens). Returns facts as :func:`write_colmap`."""
-    views = _check_views(images, K, str(out_dir))
+    views = _check_views(images, K, str(out_dir), masks)
     if per_frame is None:
         per_frame = any(not np.array_equal(K[v], K[views[0]]) for v in views)
     names = _names(views, lambda v, w: f"frame_{v:0{max(w, 5)}d}")
@@ -223,8 +216,6 @@ def write_nerfstudio(out_dir: str | Path, K: Mapping[int, np.ndarray], world_to_
                  "transform_matrix": camera_to_world_gl(world_to_cam[v]).tolist()}
             _put_image(images[v], tmp / f["file_path"])
             if masks:
-                if v not in masks:
-                    raise SceneError(f"{out_dir}: no mask for view {v} (a capture has a mask for every view or none)")
                 f["mask_path"] = f"masks/{names[v]}.png"
                 _put_mask(masks[v], tmp / f["mask_path"])
             if per_frame:

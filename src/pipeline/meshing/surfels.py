@@ -13,7 +13,7 @@ import torch
 from pipeline import geometry
 from pipeline.config import MeshConfig
 from pipeline.data.scene import Scene
-from pipeline.meshing import region as bounding, tsdf
+from pipeline.meshing import tsdf
 from pipeline.optimize.surfels import SurfelParams
 from pipeline.rasterizer import Camera, rasterize
 
@@ -105,17 +105,11 @@ def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backe
     if not (ds > 0).any():
         raise tsdf.FusionError(f"{scene.source}: the surfels render no depth above alpha {cfg.alpha_min} in any view "
                                "(an empty or transparent model: did training fail?)")
-    ds, region, region_facts = bounding.cut_to_region(ds, Ks, Ts, scene.norm_to_world, cfg, masked=masks is not None)
-    voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
-    centre = scene.norm_to_world[:3, 3]
-    depth_max = max(np.linalg.norm(geometry.camera_center(T) - centre) for T in Ts) + scene.norm_scale_mm
-    mesh = tsdf.fuse_depth_maps(ds, Ks, Ts, cs, voxel, trunc, depth_max)
-    if region is not None:
-        mesh.triangles = bounding.crop_mesh_vertices(mesh.vertices_mm, mesh.triangles, region)
-    mesh, facts = tsdf.keep_components(mesh, cfg.min_component_fraction)
+    mesh, fused, facts = tsdf.fuse_in_region(ds, Ks, Ts, cs, scene.norm_to_world, cfg, masked=masks is not None)
     if len(mesh.triangles) == 0:
         raise tsdf.FusionError(f"{scene.source}: the surfels' rendered depth fuses into an empty mesh; nothing written")
+    voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
     info = {"views_input": scene.num_views, "views_virtual": len(Ts) - scene.num_views, "depth": cfg.depth,
-            "depth_pixels": int((ds > 0).sum()), "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
-            **region_facts, **facts, "vertices": len(mesh.vertices_mm)}
+            "depth_pixels": int((fused > 0).sum()), "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
+            **facts, "vertices": len(mesh.vertices_mm)}
     return mesh, info

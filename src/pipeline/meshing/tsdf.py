@@ -172,27 +172,43 @@ def cleaning_warning(facts: dict) -> str | None:
     return None
 
 
+def depth_max_mm(world_to_cam: np.ndarray, norm_to_world: np.ndarray) -> float:
+    """Farthest depth worth integrating: the far side of the scene sphere from any camera."""
+    centre = norm_to_world[:3, 3]
+    return float(max(np.linalg.norm(geometry.camera_center(T) - centre) for T in world_to_cam) + norm_to_world[0, 0])
+
+
+def fuse_in_region(depths_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, colors: np.ndarray | None,
+                   norm_to_world: np.ndarray, cfg: MeshConfig, masked: bool) -> tuple[Mesh, np.ndarray, dict]:
+    """What both meshers do with their depth maps: cut them to ``cfg.region`` (not when
+    ``masked`` under ``auto``: :func:`pipeline.meshing.region.cut_to_region`), fuse at
+    ``cfg``'s sizes out to :func:`depth_max_mm`, drop the triangles outside the region and
+    keep the components :func:`keep_components` keeps. Returns the mesh (possibly empty),
+    the depth maps fused and the facts (region, components)."""
+    depths, region, region_facts = bounding.cut_to_region(depths_mm, K, world_to_cam, norm_to_world, cfg, masked)
+    voxel, trunc = cfg.sizes_mm(float(norm_to_world[0, 0]))
+    mesh = fuse_depth_maps(depths, K, world_to_cam, colors, voxel, trunc, depth_max_mm(world_to_cam, norm_to_world))
+    if region is not None:
+        mesh.triangles = bounding.crop_mesh_vertices(mesh.vertices_mm, mesh.triangles, region)
+    mesh, facts = keep_components(mesh, cfg.min_component_fraction)
+    return mesh, depths, {**region_facts, **facts}
+
+
 def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, cfg: MeshConfig) -> tuple[Mesh, dict]:
     """Fuse the init stage's depth maps of every view of ``scene_dir`` (cameras checked
     against the scene, colours from its images) and clean the mesh (world mm). Returns
     the mesh and facts: sizes, views, triangles fused and kept."""
     scene = load_scene(scene_dir, view_ids=None)
     maps = load_init_depths(init_dir, scene, needed_by="TSDF fusion")
-    voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
-    # Farthest depth worth integrating: the far side of the scene sphere from any camera.
-    centre = scene.norm_to_world[:3, 3]
-    depth_max = max(np.linalg.norm(geometry.camera_center(m.world_to_cam) - centre) for m in maps) + scene.norm_scale_mm
-    depths, region, region_facts = bounding.cut_to_region(
-        np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps]), scene.K, scene.world_to_cam, scene.norm_to_world,
-        cfg, masked=scene.masks is not None)
-    mesh = fuse_depth_maps(depths, scene.K, scene.world_to_cam, scene.images, voxel, trunc, depth_max)
-    if region is not None:
-        mesh.triangles = bounding.crop_mesh_vertices(mesh.vertices_mm, mesh.triangles, region)
-    mesh, facts = keep_components(mesh, cfg.min_component_fraction)
+    depths = np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps])
+    mesh, _, facts = fuse_in_region(depths, scene.K, scene.world_to_cam, scene.images, scene.norm_to_world, cfg,
+                                    masked=scene.masks is not None)
     if len(mesh.triangles) == 0:
         raise FusionError(f"{init_dir}: the depth maps fuse into an empty mesh; nothing written")
-    info = {"voxel_mm": voxel, "trunc_mm": trunc, "depth_max_mm": float(depth_max), "views": scene.view_ids,
-            **region_facts, **facts, "vertices": len(mesh.vertices_mm), "min_component_fraction": cfg.min_component_fraction}
+    voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
+    info = {"voxel_mm": voxel, "trunc_mm": trunc, "depth_max_mm": depth_max_mm(scene.world_to_cam, scene.norm_to_world),
+            "views": scene.view_ids, **facts, "vertices": len(mesh.vertices_mm),
+            "min_component_fraction": cfg.min_component_fraction}
     return mesh, info
 
 
