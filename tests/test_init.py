@@ -9,13 +9,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from init_scene import distance_to_spheres, make_scene
+from init_scene import SCAN, distance_to_spheres, make_scene
 from mast3r_helpers import FakeMASt3R, PassThrough, WrongRank, export, pair_scale
 from pipeline import geometry
 from pipeline.cli import main
-from pipeline.config import InitConfig
+from pipeline.config import ConfigError, InitConfig
 from pipeline.atomic import MARKER
-from pipeline.data.dtu import write_scene
+from pipeline.data.dtu import load_scene, write_scene
 from pipeline.init import mast3r, mvs, random_init, sfm
 from pipeline.init.fusion import check_consistency, voxel_downsample
 from pipeline.init.io import (DepthMap, InitFormatError, PointCloud, read_depth, read_ply, write_depth,
@@ -162,6 +162,61 @@ def test_mvs_rejects_textureless_views(spheres):
     flat = replace(scene, images=np.full_like(scene.images, 0.5))
     res = mvs.sweep_view(flat, 0, InitConfig().mvs)
     assert res.valid.sum() == 0
+
+
+def _occluded_spheres():
+    """The big test sphere and a small one in front of it on view 24's side: strips of the
+    big sphere that view 23 sees are hidden from view 24 (not from 33), and the reverse."""
+    base = load_scene(SCAN, resolution=(200, 150))
+    c, r = base.norm_to_world[:3, 3], base.norm_scale_mm
+    to_cam = geometry.camera_center(base.world_to_cam[1]) - c
+    big, small = (c, 0.35 * r), (c + to_cam / np.linalg.norm(to_cam) * (0.35 * r + 70.0), 25.0)
+    scene, gt = make_scene(200, 150, spheres=[big, small])
+    return scene, gt, big
+
+
+def _visible_from(scene, gt, world: np.ndarray, view: int) -> np.ndarray:
+    """Whether each world point is the surface view ``view`` sees at its pixel (exact GT depth)."""
+    uv, z = geometry.project(scene.K[view], scene.world_to_cam[view], world)
+    u, v = np.round(uv[:, 0]).astype(int), np.round(uv[:, 1]).astype(int)
+    H, W = gt.shape[1:]
+    inside = (u >= 0) & (u < W) & (v >= 0) & (v < H)
+    out = np.zeros(len(world), bool)
+    out[inside] = np.abs(gt[view][v[inside], u[inside]] - z[inside]) < 0.01 * z[inside]
+    return out
+
+
+def test_best_source_matches_surface_hidden_from_one_source():
+    """Beside an occluding edge the mean NCC over the sources rejects (or mismatches) the
+    surface one source cannot see; the best source's NCC (less the margin) finds it, and is
+    not more often wrong elsewhere."""
+    scene, gt, (centre, radius) = _occluded_spheres()
+    ys, xs = np.nonzero(gt[0] > 0)
+    rays = geometry.pixel_rays(scene.K[0], xs.astype(float), ys.astype(float)) * gt[0][ys, xs][:, None]
+    c2w = geometry.rigid_inverse(scene.world_to_cam[0])
+    world = rays @ c2w[:3, :3].T + c2w[:3, 3]
+    on_big = np.abs(np.linalg.norm(world - centre, axis=1) - radius) < 1e-3
+    seen_24, seen_33 = (_visible_from(scene, gt, world, v) for v in (1, 2))
+    half = on_big & ~seen_24 & seen_33
+    both = on_big & seen_24 & seen_33
+    assert half.sum() > 200 and both.sum() > 3000  # the scene has both kinds of pixel
+
+    def correct_and_wrong(margin):
+        sw = mvs.sweep_view(scene, 0, replace(InitConfig().mvs, best_source_margin=margin))
+        valid = sw.valid[ys, xs]
+        good = valid & (np.abs(sw.depth_mm[ys, xs] - gt[0][ys, xs]) < 0.01 * gt[0][ys, xs])
+        return good, valid & ~good
+
+    good_mean, wrong_mean = correct_and_wrong(2.0)  # NCC <= 1: the mean alone
+    good_best, wrong_best = correct_and_wrong(InitConfig().mvs.best_source_margin)
+    assert good_best[half].mean() > 0.5 and good_best[half].mean() > 2.5 * good_mean[half].mean()
+    assert good_best[both].mean() > 0.9
+    assert wrong_best.mean() < 1.5 * wrong_mean.mean() + 0.01
+
+
+def test_negative_best_source_margin_is_named():
+    with pytest.raises(ConfigError, match="best_source_margin"):
+        replace(InitConfig().mvs, best_source_margin=-0.1)
 
 
 @pytest.fixture(scope="module")

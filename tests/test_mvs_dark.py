@@ -55,9 +55,11 @@ def test_dark_wide_baseline_gives_a_usable_cloud(dark_wide):
     root, scene = dark_wide
     res = mvs.run(scene, InitConfig())
     assert res.info["warnings"] == []
-    # 800x600: 57-72 % matched, 22-26 % consistent (the same views, bright: the same); 20 % of
-    # each view sees a part no other view sees at these baselines.
-    assert min(res.info["matched_fraction"]) > 0.25 and min(res.info["consistent_fraction"]) > 0.15
+    # 800x600: 58-70 % matched, 15-24 % consistent (the same views, bright: the same); 20 % of
+    # each view sees a part no other view sees at these baselines. Scoring by the best source
+    # (init.mvs.best_source_margin) costs consistent pixels here (22-26 % with the mean alone)
+    # and halves the depth outliers (docs/init.md, "Occlusions").
+    assert min(res.info["matched_fraction"]) > 0.25 and min(res.info["consistent_fraction"]) > 0.12
     V, F = read_mesh(root / "gt" / "mesh.ply")
     rc = o3d.t.geometry.RaycastingScene()
     rc.add_triangles(V.astype(np.float32), F.astype(np.uint32))

@@ -35,6 +35,16 @@ def test_round_trip_keeps_every_figure(tmp_path):
     assert SceneMetrics.read(tmp_path / "h.json").heldout == h.heldout
 
 
+def test_empty_group_survives_a_json_round_trip_of_the_evaluation():
+    """The baseline stage reads evaluate_mesh's result back from its JSON file (an empty
+    seen-group's accuracy is null there) and writes it again: null stays null."""
+    from_file = json.loads(json.dumps(Chamfer.of(_evaluate_mesh_result()).to_json()))
+    assert from_file["accuracy_by_views_seen"]["0"]["accuracy_mm"] is None
+    again = Chamfer.of(from_file | {"timings_s": {}, "config": {}})
+    assert math.isnan(again.accuracy_by_views_seen["0"]["accuracy_mm"])
+    assert again.to_json() == from_file
+
+
 def test_undefined_chamfer_is_written_as_null_and_refused_as_a_figure(tmp_path):
     bad = _evaluate_mesh_result(accuracy_mm=math.nan, overall_mm=math.nan, valid=False, problems=["no data point"])
     SceneMetrics(**COMMON, chamfer=Chamfer.of(bad)).write(tmp_path / "m.json")

@@ -130,6 +130,9 @@ class MVSConfig:
     fill_window: int = 7  # its window side, coarse pixels (odd)
     fill_max_rms: float = 0.05  # its winner's RMS grey difference (object-mean units) above this -> invalid
     fill_min_std: float = 0.002  # its window's grey std (object-mean units) below this -> one grey, invalid
+    # A hypothesis scores max(mean NCC over the sources, best source's NCC - this): a point
+    # beside an occluding edge is hidden from some sources (>= 2: the mean alone).
+    best_source_margin: float = 0.1
 
     def __post_init__(self) -> None:
         if self.window < 3 or self.window % 2 == 0:
@@ -143,6 +146,8 @@ class MVSConfig:
             raise ConfigError("init.mvs: fill_width must be >= 0, fill_window odd and >= 3, fill_max_rms > 0, fill_min_std >= 0")
         if self.min_rel_std < 0:
             raise ConfigError(f"init.mvs.min_rel_std must be >= 0, got {self.min_rel_std}")
+        if not self.best_source_margin >= 0:
+            raise ConfigError(f"init.mvs.best_source_margin must be >= 0, got {self.best_source_margin}")
 
 
 @dataclass

@@ -46,8 +46,15 @@ def _nan(value: float | None) -> float:
     return math.nan if value is None else value
 
 
-def _json_number(value: float) -> float | None:
-    return value if math.isfinite(value) else None  # JSON has no NaN: null, with `valid` false
+def _json_number(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else value  # JSON has no NaN: null
+
+
+def _by_seen(groups: dict | None) -> dict | None:
+    """Accuracy by views seen with JSON's nulls (an empty group) back to NaN."""
+    if groups is None:
+        return None
+    return {g: {k: _nan(v) for k, v in r.items()} for g, r in groups.items()}
 
 
 @dataclass(frozen=True)
@@ -66,7 +73,7 @@ class Chamfer:
     def of(cls, metrics: dict) -> Chamfer:
         """From :func:`pipeline.evaluation.dtu_eval.evaluate_mesh`'s result."""
         return cls(metrics["accuracy_mm"], metrics["completeness_mm"], metrics["overall_mm"], bool(metrics["valid"]),
-                   tuple(metrics["problems"]), dict(metrics["counts"]), metrics.get("accuracy_by_views_seen"))
+                   tuple(metrics["problems"]), dict(metrics["counts"]), _by_seen(metrics.get("accuracy_by_views_seen")))
 
     @classmethod
     def parse(cls, data: object, where: str) -> Chamfer:
@@ -76,7 +83,7 @@ class Chamfer:
         nums = {k: _number(data, k, where, finite=False, optional=not valid)
                 for k in ("accuracy_mm", "completeness_mm", "overall_mm")}
         return cls(**{k: _nan(v) for k, v in nums.items()}, valid=bool(valid), problems=tuple(data.get("problems", ())),
-                   counts=dict(data.get("counts", {})), accuracy_by_views_seen=data.get("accuracy_by_views_seen"))
+                   counts=dict(data.get("counts", {})), accuracy_by_views_seen=_by_seen(data.get("accuracy_by_views_seen")))
 
     def figures(self, where: str) -> dict[str, float]:
         """``overall``, ``accuracy``, ``completeness`` (mm), all finite, else an error naming ``where``."""

@@ -5,7 +5,9 @@ one pixel of disparity apart) sweep the depth range where the reference rays cro
 scene's unit sphere. Each source view is warped onto every plane (bilinear, a numba kernel) and
 compared with the reference by zero-mean normalised cross-correlation over a square
 window (box filters), which is invariant to gain and offset changes of the lighting.
-The per-pixel score is the mean NCC over the source views that see the point;
+The per-pixel score is the mean NCC over the source views that see the point, or the best
+source's NCC less a margin where that is higher (a surface strip beside an occluding edge
+is hidden from some sources, and the mean alone rejects it);
 winner-take-all picks a plane, and a parabola through the scores of the neighbouring
 planes (in inverse depth) refines it below the plane spacing. Masks are honoured: only
 object pixels of the reference get a depth, and hypotheses that land outside a source
@@ -125,10 +127,10 @@ def _warp_moments(A, b, Z, img, smask, R, M, x0, y0, mom, in_mask, seen) -> None
 
 
 @numba.njit(parallel=True, cache=True)
-def _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt) -> None:
+def _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt, best) -> None:
     """NCC from masked window moments (box means of ``M S, M S^2, M R S`` divided by the
-    window's object fraction ``frac``), added to ``acc``/``cnt`` where the source sees the
-    point; -1 where it sees it outside its object mask."""
+    window's object fraction ``frac``), added to ``acc``/``cnt`` and maxed into ``best``
+    where the source sees the point; -1 where it sees it outside its object mask."""
     h, w = mu_r.shape
     for y in numba.prange(h):
         for x in range(w):
@@ -142,12 +144,13 @@ def _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt) -> None
                 ncc = -1.0
             acc[y, x] += ncc
             cnt[y, x] += 1.0
+            best[y, x] = max(best[y, x], ncc)
 
 
 @dataclass
 class SweepResult:
     depth_mm: np.ndarray  # (H, W) float32, 0 where invalid
-    score: np.ndarray  # (H, W) float32 mean NCC of the winner, -1 where invalid
+    score: np.ndarray  # (H, W) float32 score of the winner (mean or margin-reduced best NCC), -1 where invalid
     valid: np.ndarray  # (H, W) bool
     num_depths: int
 
@@ -252,15 +255,18 @@ def sweep_view(scene: Scene, ref: int, params: MVSConfig, grey: np.ndarray | Non
     seen = np.zeros((h, w), bool)
 
     def score(Z: np.ndarray) -> np.ndarray:
-        """Mean NCC over the sources at per-pixel depths ``Z``; -1 where no source sees
-        the point or ``Z`` is outside the pixel's sphere interval (not the object)."""
+        """Score of per-pixel depths ``Z``: ``max(mean NCC over the sources, best source's
+        NCC - params.best_source_margin)``; -1 where no source sees the point or ``Z`` is
+        outside the pixel's sphere interval (not the object)."""
         acc = np.zeros((h, w), np.float32)
         cnt = np.zeros((h, w), np.float32)
+        best = np.full((h, w), -1.0, np.float32)
         for A, b, img, smask in src_data:
             _warp_moments(A, b, Z, img, smask, ref_img, M, x0, y0, mom, in_mask, seen)
             moments = cv2.boxFilter(mom, -1, (k, k), borderType=cv2.BORDER_REFLECT_101)
-            _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt)
-        return np.where((cnt > 0) & (Z >= near_b) & (Z <= far_b), acc / np.maximum(cnt, 1.0), -1.0)
+            _accumulate_ncc(moments, frac, mu_r, var_r, in_mask, seen, acc, cnt, best)
+        agg = np.maximum(acc / np.maximum(cnt, 1.0), best - params.best_source_margin)
+        return np.where((cnt > 0) & (Z >= near_b) & (Z <= far_b), agg, -1.0)
 
     step = (inv_planes[-1] - inv_planes[0]) / (D - 1)
     cost = np.empty((D, h, w), dtype=np.float32)
@@ -441,7 +447,7 @@ def match_warnings(view_ids: list[int], matched: list[float], consistent: list[f
     """One message per view whose matched or consistent fraction of mask pixels is below
     ``params.warn_below_matched`` / ``warn_below_consistent``: such a run exits normally
     but its cloud covers little of the object (a real dark, wide-baseline scan: 5-10 %
-    matched, 2-5 % consistent; scan24: 85-91 % and 79-82 %)."""
+    matched, 2-5 % consistent; scan24: 90-95 % and 77-84 %)."""
     out = []
     for v, m, c in zip(view_ids, matched, consistent):
         low = []
