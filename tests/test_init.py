@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from init_scene import SCAN, distance_to_spheres, make_scene
+from init_scene import SCAN, distance_to_spheres, make_scene, ray_cast
 from mast3r_helpers import FakeMASt3R, PassThrough, WrongRank, export, pair_scale
 from pipeline import geometry
 from pipeline.cli import main
@@ -165,14 +165,14 @@ def test_mvs_rejects_textureless_views(spheres):
 
 
 def _occluded_spheres():
-    """The big test sphere and a small one in front of it on view 24's side: strips of the
-    big sphere that view 23 sees are hidden from view 24 (not from 33), and the reverse."""
+    """The big test sphere and a small one in front of it on view 24's side (the big one
+    first): strips of the big sphere that view 23 sees are hidden from view 24, not from 33."""
     base = load_scene(SCAN, resolution=(200, 150))
     c, r = base.norm_to_world[:3, 3], base.norm_scale_mm
     to_cam = geometry.camera_center(base.world_to_cam[1]) - c
     big, small = (c, 0.35 * r), (c + to_cam / np.linalg.norm(to_cam) * (0.35 * r + 70.0), 25.0)
     scene, gt = make_scene(200, 150, spheres=[big, small])
-    return scene, gt, big
+    return scene, gt, [big, small]
 
 
 def _visible_from(scene, gt, world: np.ndarray, view: int) -> np.ndarray:
@@ -190,11 +190,10 @@ def test_best_source_matches_surface_hidden_from_one_source():
     """Beside an occluding edge the mean NCC over the sources rejects (or mismatches) the
     surface one source cannot see; the best source's NCC (less the margin) finds it, and is
     not more often wrong elsewhere."""
-    scene, gt, (centre, radius) = _occluded_spheres()
+    scene, gt, spheres = _occluded_spheres()
+    (centre, radius), H, W = spheres[0], scene.height, scene.width
     ys, xs = np.nonzero(gt[0] > 0)
-    rays = geometry.pixel_rays(scene.K[0], xs.astype(float), ys.astype(float)) * gt[0][ys, xs][:, None]
-    c2w = geometry.rigid_inverse(scene.world_to_cam[0])
-    world = rays @ c2w[:3, :3].T + c2w[:3, 3]
+    world = ray_cast(scene.K[0], scene.world_to_cam[0], H, W, spheres)[1][ys, xs]
     on_big = np.abs(np.linalg.norm(world - centre, axis=1) - radius) < 1e-3
     seen_24, seen_33 = (_visible_from(scene, gt, world, v) for v in (1, 2))
     half = on_big & ~seen_24 & seen_33
