@@ -9,7 +9,7 @@ at 200x150 in heldout/ (held-out IoU and PSNR).
 import sys
 from pathlib import Path
 
-from pipeline.config import DataConfig
+from pipeline.config.data import DataConfig
 from pipeline.data.heldout import HELDOUT_DIR, write_heldout
 from pipeline.data.prepare import prepare_scene
 

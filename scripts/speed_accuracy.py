@@ -18,10 +18,11 @@ import subprocess
 import sys
 from pathlib import Path
 
-from pipeline.config import AblationConfig, load_params, section
-from pipeline.reports.speed_accuracy import collect_cells, write_report
+from pipeline.config.ablation import AblationConfig
+from pipeline.config.params import load_params, section
 from pipeline.evaluation.record import SceneMetrics
 from pipeline.measure import provenance
+from pipeline.reports.speed_accuracy import collect_cells, write_report
 
 REPORTS = Path("reports/speed_accuracy")
 # Cells whose settings are a preset of conf/optimize (tests/test_variants.py keeps them equal).

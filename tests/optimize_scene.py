@@ -10,10 +10,11 @@ import numpy as np
 
 from init_scene import make_scene
 from pipeline import geometry
-from pipeline.config import LossConfig, OptimizeConfig, PriorsConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.priors import PriorsConfig
 from pipeline.init.io import PointCloud
-from pipeline.priors import features as feat
-from pipeline.priors import normals as nrm
+from pipeline.priors import features as feat, normals as nrm
 from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, write_features, write_normals
 
 

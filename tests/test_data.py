@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from pipeline import geometry
-from pipeline.config import DataConfig
+from pipeline.config.data import DataConfig
 from pipeline.data import dtu
-from pipeline.data.scene import SceneError
 from pipeline.data.prepare import prepare_scene
+from pipeline.data.scene import SceneError
 
 
 def test_bundled_scan_loads_with_expected_cameras(bundled_scan):

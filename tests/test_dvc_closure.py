@@ -4,7 +4,7 @@ For each stage (``foreach`` stages by their template), the module its ``gcgs`` s
 runs (``pipeline.cli.COMMANDS``) is followed through its imports statically: every
 ``import``/``from ... import`` anywhere in a module (function-level ones included), a
 package import pulling its ``__init__.py``, and dotted module names written as strings
-(``importlib.import_module`` registries such as ``pipeline.init.BACKEND_MODULES``). A
+(``importlib.import_module`` registries such as ``pipeline.init.backends.BACKEND_MODULES``). A
 file is covered when dvc.yaml's deps of that stage list it or a folder holding it. An
 edit to an uncovered file would leave outputs that ``dvc repro`` calls up to date.
 """
@@ -132,6 +132,24 @@ def test_stage_deps_cover_the_code_it_imports(stage):
     missing = uncovered(closure, deps)
     assert not missing, f"dvc.yaml stage {stage} does not list code its command imports: {missing}"
 
+
+
+# Stages that read the init's files but never run a backend: an edit to a backend or to the
+# init's settings must not make their code stale (it reruns them only through the init's
+# outputs, when those change).
+READS_INIT_OUTPUTS = ("priors", "optimize", "mesh", "evaluate", "renders", "variant")
+
+
+@pytest.mark.parametrize("stage", READS_INIT_OUTPUTS)
+def test_init_backends_are_not_code_of_the_stages_after_it(stage):
+    modules, _ = STAGES[stage]
+    closure = {f.relative_to(SRC).as_posix() for f in set().union(*(import_closure(m) for m in modules))}
+    init_code = sorted(f for f in closure if f.startswith("pipeline/init/") or f.startswith("pipeline/config/"))
+    allowed = {"pipeline/init/__init__.py", "pipeline/init/io.py", "pipeline/config/__init__.py",
+               "pipeline/config/params.py", "pipeline/config/data.py", "pipeline/config/evaluate.py",
+               "pipeline/config/loss.py", "pipeline/config/mesh.py", "pipeline/config/optimize.py",
+               "pipeline/config/priors.py", "pipeline/config/ablation.py", "pipeline/config/scenes.py"}
+    assert set(init_code) <= allowed, f"stage {stage} imports init code or settings: {sorted(set(init_code) - allowed)}"
 
 # The checker itself, on a small package written here.
 def _write(root: Path, files: dict[str, str]) -> None:

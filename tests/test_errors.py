@@ -12,7 +12,7 @@ from pipeline.errors import InputError, MissingInputError
 
 
 def test_every_input_error_class_derives_from_the_base():
-    from pipeline.config import ConfigError
+    from pipeline.errors import ConfigError
     from pipeline.data.scene import SceneError
     from pipeline.evaluation.gt import GroundTruthError
     from pipeline.evaluation.sampling import MeshError

@@ -9,10 +9,9 @@ import pytest
 
 from pipeline import geometry
 from pipeline.cli import main
-from pipeline.config import EvaluateConfig
+from pipeline.config.evaluate import EvaluateConfig
 from pipeline.data import dtu
-from pipeline.evaluation import dtu_eval
-from pipeline.evaluation import gt as gtmod
+from pipeline.evaluation import dtu_eval, gt as gtmod
 from pipeline.evaluation.sampling import MeshError, sample_mesh
 
 CENTRE = np.array([-28.0, -13.0, 641.0])  # scan24's object centre (DTU world, mm)

@@ -10,8 +10,8 @@ import pycolmap
 import pytest
 
 from pipeline import geometry
-from pipeline.config import DataConfig
 from pipeline.benchmarks import layouts
+from pipeline.config.data import DataConfig
 from pipeline.data import dtu, export
 from pipeline.data.layouts import detect
 from pipeline.data.prepare import prepare_scene

@@ -12,12 +12,14 @@ import pytest
 from init_scene import SCAN, distance_to_spheres, make_scene, ray_cast
 from mast3r_helpers import FakeMASt3R, PassThrough, WrongRank, export, pair_scale
 from pipeline import geometry
-from pipeline.cli import main
-from pipeline.config import ConfigError, InitConfig
 from pipeline.atomic import MARKER
+from pipeline.cli import main
+from pipeline.config.init import InitConfig
 from pipeline.data.dtu import load_scene, write_scene
+from pipeline.errors import ConfigError
+from pipeline.geometry import voxel_downsample
 from pipeline.init import mast3r, mvs, random_init, sfm
-from pipeline.init.fusion import check_consistency, voxel_downsample
+from pipeline.init.fusion import check_consistency
 from pipeline.init.io import (DepthMap, InitFormatError, PointCloud, read_depth, read_ply, write_depth,
                               write_ply)
 from pipeline.onnx_models import ModelError

@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.config import EvaluateConfig
-from pipeline.evaluation.gt import read_ground_truth, write_ground_truth
+from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.clouds import cloud_metrics
+from pipeline.evaluation.gt import read_ground_truth, write_ground_truth
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ import torch
 from plyfile import PlyData
 
 from pipeline import geometry
-from pipeline.config import DataConfig
+from pipeline.config.data import DataConfig
 from pipeline.data import dtu, export
 from pipeline.data.capture import sphere_from_cameras
 from pipeline.data.layouts import detect

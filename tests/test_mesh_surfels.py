@@ -10,7 +10,7 @@ import torch
 from init_scene import distance_to_spheres
 from optimize_scene import tiny_config, tiny_problem
 from pipeline import geometry
-from pipeline.config import MeshConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.evaluation.heldout import heldout_scores, iou, masked_psnr, visual_hull_silhouettes
 from pipeline.meshing.surfels import mesh_from_surfels, virtual_world_to_cams
 from pipeline.meshing.tsdf import FusionError

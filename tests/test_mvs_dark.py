@@ -16,7 +16,7 @@ import pytest
 
 from pipeline import geometry
 from pipeline.cli import main
-from pipeline.config import InitConfig
+from pipeline.config.init import InitConfig
 from pipeline.data import dtu
 from pipeline.evaluation.gt import read_mesh
 from pipeline.init import mvs

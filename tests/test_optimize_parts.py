@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.config import ConfigError, DensifyConfig
+from pipeline.config.optimize import DensifyConfig
+from pipeline.errors import ConfigError
 from pipeline.optimize import ops, terms
 from pipeline.optimize.strategy import DensifyStrategy, screen_grad_ndc
 from pipeline.optimize.surfels import (

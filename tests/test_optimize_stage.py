@@ -13,7 +13,7 @@ import yaml
 from optimize_scene import tiny_problem
 from pipeline import cli
 from pipeline.atomic import MARKER
-from pipeline.config import load_params
+from pipeline.config.params import load_params
 from pipeline.data import dtu
 from pipeline.init.io import write_ply
 

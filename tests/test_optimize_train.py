@@ -10,14 +10,12 @@ import pytest
 import torch
 
 from optimize_scene import tiny_config, tiny_problem
+from pipeline.errors import ConfigError, DegenerateResultError
 from pipeline.init.io import PointCloud
-from pipeline.config import ConfigError
-from pipeline.errors import DegenerateResultError
 from pipeline.optimize import NonFiniteLossError, SurfelInitError, budget_downsample, init_from_cloud, make_views, train
-from pipeline.runs.optimize import timing_report
 from pipeline.optimize.surfels import init_params
-from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals
-from pipeline.priors.io import write_features, write_normals
+from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals, write_features, write_normals
+from pipeline.runs.optimize import timing_report
 
 
 @pytest.fixture(scope="module")

@@ -1,32 +1,54 @@
 """params.yaml must be the Hydra composition of conf/ (DVC reads params.yaml only)."""
 import yaml
 
-from pipeline import config
-from pipeline.config import compose_params, dump_params
+from pipeline.config.ablation import AblationConfig
+from pipeline.config.data import DataConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.init import InitConfig, MVSConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import PARAMS_PATH, compose_params, dump_params, from_dict, load_params, section
+from pipeline.config.priors import PriorsConfig
+from pipeline.config.scenes import SceneEntry
+from pipeline.config.synth import SynthConfig
+
+# Top-level params.yaml sections and their typed configs (``scenes`` maps names to entries).
+SECTIONS: dict[str, type] = {
+    "data": DataConfig,
+    "synth": SynthConfig,
+    "evaluate": EvaluateConfig,
+    "loss": LossConfig,
+    "init": InitConfig,
+    "priors": PriorsConfig,
+    "mesh": MeshConfig,
+    "optimize": OptimizeConfig,
+    "ablation": AblationConfig,
+}
 
 
 def test_params_yaml_is_composed_from_conf():
     composed = dump_params(compose_params())
-    current = config.PARAMS_PATH.read_text()
+    current = PARAMS_PATH.read_text()
     assert yaml.safe_load(current) == yaml.safe_load(composed), "params.yaml is stale: run `gcgs params --write`"
     assert current == composed
 
 
 def test_every_section_parses_into_its_dataclass():
-    params = config.load_params()
-    untyped = set(params) - set(config.SECTIONS) - {"scenes"}
-    assert not untyped, f"params sections without a typed config in config.SECTIONS: {untyped}"
-    for key, cls in config.SECTIONS.items():
-        config.section(cls, key, params)
+    params = load_params()
+    untyped = set(params) - set(SECTIONS) - {"scenes"}
+    assert not untyped, f"params sections without a typed config in SECTIONS: {untyped}"
+    for key, cls in SECTIONS.items():
+        section(cls, key, params)
     for name, entry in params["scenes"].items():
-        config.from_dict(config.SceneEntry, entry, where=f"scenes.{name}")
+        from_dict(SceneEntry, entry, where=f"scenes.{name}")
 
 
 def test_unknown_key_is_rejected():
     import pytest
 
     with pytest.raises(ValueError, match=r"unknown key\(s\) \['widht'\] in config section data"):
-        config.from_dict(config.DataConfig, {"widht": 3}, where="data")
+        from_dict(DataConfig, {"widht": 3}, where="data")
 
 
 def test_hydra_override_changes_composition():
@@ -38,24 +60,34 @@ def test_section_applies_overrides_before_validation():
 
     from pipeline.errors import ConfigError
 
-    params = config.load_params()
+    params = load_params()
     before = yaml.safe_dump(params)
-    cfg = config.section(config.InitConfig, "init", params, {"backend": "random", "mast3r.model": "m.onnx",
+    cfg = section(InitConfig, "init", params, {"backend": "random", "mast3r.model": "m.onnx",
                                                              "seed": None})
     assert (cfg.backend, cfg.mast3r.model, cfg.seed) == ("random", "m.onnx", params["init"]["seed"])
-    assert cfg.mvs == config.MVSConfig(**params["init"]["mvs"])  # the rest comes from params
+    assert cfg.mvs == MVSConfig(**params["init"]["mvs"])  # the rest comes from params
     assert yaml.safe_dump(params) == before  # params are not modified
     with pytest.raises(ConfigError, match="init.backend must be one of mvs, sfm, mast3r, random, got 'colmap'"):
-        config.section(config.InitConfig, "init", params, {"backend": "colmap"})
+        section(InitConfig, "init", params, {"backend": "colmap"})
     with pytest.raises(ConfigError, match=r"unknown key\(s\) \['windw'\] in config section init.mvs"):
-        config.section(config.InitConfig, "init", params, {"mvs.windw": 5})
+        section(InitConfig, "init", params, {"mvs.windw": 5})
     with pytest.raises(ConfigError, match="data.views must be distinct view ids"):
-        config.section(config.DataConfig, "data", params, {"views": [1, 1]})
+        section(DataConfig, "data", params, {"views": [1, 1]})
     with pytest.raises(ConfigError, match=r"loss.gcf_max_dissimilarity must be in \(0, 2\]"):
-        config.section(config.LossConfig, "loss", params, {"gcf_max_dissimilarity": 0.0})
+        section(LossConfig, "loss", params, {"gcf_max_dissimilarity": 0.0})
 
 
 def test_one_list_of_init_backends():
-    from pipeline.init import BACKEND_MODULES
+    from pipeline.init.backends import BACKEND_MODULES
 
-    assert config.InitConfig.BACKENDS == tuple(BACKEND_MODULES)
+    assert InitConfig.BACKENDS == tuple(BACKEND_MODULES)
+
+
+def test_config_package_imports_no_concept():
+    """Each stage depends only on the config modules it imports (dvc.yaml deps): the
+    package's __init__ must import none of them, or every stage would depend on all."""
+    import ast
+
+    init = PARAMS_PATH.parent / "src" / "pipeline" / "config" / "__init__.py"
+    tree = ast.parse(init.read_text())
+    assert not [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))]

@@ -105,6 +105,18 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
         assert f"Running stage '{stage}'" not in third
     assert json.loads((tiny_repo / "reports/baseline/synth_relief.json").read_text()) == relief
 
+    # An edit to an init backend's code makes the stages that run backends stale (init,
+    # baseline), not the ones that only read the init's files: they rerun only if its outputs change.
+    backend = tiny_repo / "src/pipeline/init/mast3r.py"
+    original = backend.read_text()
+    backend.write_text(original + "\n# an edit\n")
+    status = _dvc(tiny_repo, "status")
+    assert "init@scan24" in status and "baseline@scan24" in status
+    for stage in ("priors@scan24", "optimize@scan24", "mesh@scan24", "evaluate@scan24", "renders@scan24",
+                  "variant@synth_relief-no_priors"):
+        assert stage not in status, stage
+    backend.write_text(original)
+
     params = yaml.safe_load((tiny_repo / "params.yaml").read_text())
     params["ablation"]["variants"]["no_priors"]["mesh"] = {"depth": "expected"}
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))

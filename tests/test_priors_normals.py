@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from onnx_helpers import SPHERE_CENTRE_CAM, SPHERE_RADIUS, export_fake_dsine
-from pipeline.config import PriorsConfig
+from pipeline.config.priors import PriorsConfig
 from pipeline.onnx_models import DSINE_CONTRACT, load_onnx
 from pipeline.priors.normals import NormalError, dsine_inputs, dsine_normals, normals_from_depth
 

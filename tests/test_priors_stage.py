@@ -12,7 +12,7 @@ from onnx_helpers import FakeVisMVSNet, export_fake_dsine, export_fake_vismvsnet
 from relief_scene import write_relief_scene
 from pipeline import cli
 from pipeline.atomic import MARKER
-from pipeline.config import PARAMS_PATH
+from pipeline.config.params import PARAMS_PATH
 from pipeline.data import dtu
 from pipeline.priors.io import features_path, normals_path, read_features, read_normals
 

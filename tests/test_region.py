@@ -8,9 +8,9 @@ import pytest
 
 from init_scene import make_scene, ray_cast
 from pipeline import geometry
-from pipeline.config import ConfigError, MeshConfig
-from pipeline.meshing import region as bounding
-from pipeline.meshing import tsdf
+from pipeline.config.mesh import MeshConfig
+from pipeline.errors import ConfigError
+from pipeline.meshing import region as bounding, tsdf
 
 
 def _table_scene(width=160, height=120):

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from pipeline.cli import main
-from pipeline.config import PARAMS_PATH
+from pipeline.config.params import PARAMS_PATH
 
 W, H = 80, 60
 

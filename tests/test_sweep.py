@@ -4,7 +4,7 @@ import pytest
 from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 
-from pipeline.config import CONF_DIR, compose_params
+from pipeline.config.params import CONF_DIR, compose_params
 from pipeline.errors import ConfigError
 from pipeline.sweep import SWEEP_CONFIG, cell_params
 

@@ -245,7 +245,8 @@ def test_cli_list_and_bad_arguments(capsys, tmp_path, bundled_scan):
 def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundled_scan):
     """The limit mesh keeps exactly the GT triangles the given views see: all 49 views give the
     whole GT mesh back, three give a strict subset lying on it, and more views never see less."""
-    from pipeline.config import DataConfig, EvaluateConfig
+    from pipeline.config.data import DataConfig
+    from pipeline.config.evaluate import EvaluateConfig
     from pipeline.data.prepare import prepare_scene
     from pipeline.data.scene import SceneError
     from pipeline.evaluation import gt

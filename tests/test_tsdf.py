@@ -7,7 +7,7 @@ import pytest
 
 from init_scene import distance_to_spheres, make_scene, spheres_world
 from pipeline import geometry
-from pipeline.config import MeshConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.meshing import tsdf
 
 

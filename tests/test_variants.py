@@ -5,8 +5,11 @@ from pathlib import Path
 
 import pytest
 
-from pipeline.errors import InputError
-from pipeline.config import AblationConfig, ConfigError, LossConfig, OptimizeConfig, merged_section, section
+from pipeline.config.ablation import AblationConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import merged_section, section
+from pipeline.errors import ConfigError, InputError
 from pipeline.runs.variant import variant_configs
 
 REPO = Path(__file__).resolve().parents[1]
@@ -176,7 +179,8 @@ def test_presets_are_the_sweep_cells_they_cite(preset, cell):
     """conf/optimize/{quick,balanced,paper}.yaml must stay the settings measured as their sweep cell."""
     import dataclasses
 
-    from pipeline.config import OptimizeConfig, compose_params, load_params
+    from pipeline.config.optimize import OptimizeConfig
+    from pipeline.config.params import compose_params, load_params
 
     preset_cfg = dataclasses.asdict(section(OptimizeConfig, "optimize", compose_params([f"optimize={preset}"])))
     cell_cfg = dataclasses.asdict(variant_configs(load_params(), cell)[1])

@@ -148,3 +148,23 @@ def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
                              (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], 1)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # one sign per rotation: w >= 0
     return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def voxel_downsample(points: np.ndarray, voxel: float, *attrs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Average ``points`` (and each attribute array) within cubic voxels of side ``voxel``
+    (in the points' unit: mm in the world frame, radii in the normalised one).
+
+    Returns ``(points, *attrs)`` with one row per occupied voxel.
+    """
+    if len(points) == 0:
+        return (points,) + attrs
+    keys = np.floor(points / voxel).astype(np.int64)
+    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
+    inv = inv.ravel()
+    out = []
+    for a in (points,) + attrs:
+        a2 = a.reshape(len(a), -1).astype(np.float64)
+        s = np.zeros((len(counts), a2.shape[1]))
+        np.add.at(s, inv, a2)
+        out.append((s / counts[:, None]).reshape((len(counts),) + a.shape[1:]).astype(a.dtype))
+    return tuple(out)

@@ -23,7 +23,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
-from pipeline.config import CONF_DIR, dump_params
+from pipeline.config.params import CONF_DIR, dump_params
 from pipeline.errors import ConfigError, InputError
 from pipeline.evaluation.record import SceneMetrics
 

@@ -99,8 +99,15 @@ def run_layout(src: str, out: str, name: str, ref_scene: str, gt_dir: str, param
     mesh/, eval.json) with the params of ``params_path``, as the dvc stages run it; the
     mesh is scored against ``gt_dir`` culled by ``ref_scene``'s masks (the DTU-layout
     prepared scene). Runs in a child process (:func:`pipeline.measure.run_in_child`)."""
-    from pipeline.config import (DataConfig, EvaluateConfig, InitConfig, LossConfig, MeshConfig, OptimizeConfig,
-                                 PriorsConfig, load_params, losses_in_use, section)
+    from pipeline.config.ablation import losses_in_use
+    from pipeline.config.data import DataConfig
+    from pipeline.config.evaluate import EvaluateConfig
+    from pipeline.config.init import InitConfig
+    from pipeline.config.loss import LossConfig
+    from pipeline.config.mesh import MeshConfig
+    from pipeline.config.optimize import OptimizeConfig
+    from pipeline.config.params import load_params, section
+    from pipeline.config.priors import PriorsConfig
     from pipeline.data.prepare import prepare_scene
     from pipeline.evaluation import dtu_eval, gt, seen
     from pipeline.measure import measure

@@ -19,7 +19,7 @@ import torch
 import yaml
 
 from pipeline import atomic, cli
-from pipeline.config import load_params
+from pipeline.config.params import load_params
 from pipeline.measure import provenance, run_in_child
 
 CONFIGS = {"normals+features (default)": {}, "normals only (lambda_gcf=0)": {"lambda_gcf": 0.0},

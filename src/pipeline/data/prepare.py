@@ -11,7 +11,7 @@ from pathlib import Path
 
 from pipeline import geometry
 from pipeline.atomic import atomic_dir
-from pipeline.config import DataConfig
+from pipeline.config.data import DataConfig
 import cv2
 import numpy as np
 

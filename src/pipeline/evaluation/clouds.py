@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from pipeline.config import EvaluateConfig
+from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.gt import GroundTruth, read_mesh
 from pipeline.meshing.raycast import distance_to_mesh
 

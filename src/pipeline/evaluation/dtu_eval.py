@@ -35,10 +35,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline import atomic, geometry
-from pipeline.config import EvaluateConfig
+from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.gt import GroundTruth, read_mesh
-from pipeline.evaluation.seen import InputView, accuracy_by_views_seen
 from pipeline.evaluation.sampling import check_mesh, radius_downsample, sample_mesh
+from pipeline.evaluation.seen import InputView, accuracy_by_views_seen
 
 # The script's masks are 1600 px wide; its 24 px dilation is scaled to other widths.
 REFERENCE_MASK_WIDTH_PX = 1600

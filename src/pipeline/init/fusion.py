@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline import geometry
-from pipeline.config import ConsistencyConfig
+from pipeline.config.init import ConsistencyConfig
+from pipeline.geometry import voxel_downsample
 from pipeline.init.io import PointCloud
 
 
@@ -78,25 +79,6 @@ def check_consistency(depths: np.ndarray, valid: np.ndarray, K: np.ndarray, worl
         out.append(ViewPoints(vmask, cmap, acc[keep] / n, (col_acc[keep] / n).astype(np.float32),
                               np.stack([rows[keep], cols[keep]], 1)))
     return out
-
-
-def voxel_downsample(points: np.ndarray, voxel_mm: float, *attrs: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Average ``points`` (and each attribute array) within cubic voxels of ``voxel_mm``.
-
-    Returns ``(points, *attrs)`` with one row per occupied voxel.
-    """
-    if len(points) == 0:
-        return (points,) + attrs
-    keys = np.floor(points / voxel_mm).astype(np.int64)
-    _, inv, counts = np.unique(keys, axis=0, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    out = []
-    for a in (points,) + attrs:
-        a2 = a.reshape(len(a), -1).astype(np.float64)
-        s = np.zeros((len(counts), a2.shape[1]))
-        np.add.at(s, inv, a2)
-        out.append((s / counts[:, None]).reshape((len(counts),) + a.shape[1:]).astype(a.dtype))
-    return tuple(out)
 
 
 def estimate_normals(points: np.ndarray, toward: np.ndarray, knn: int = 20) -> np.ndarray:

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline import geometry
-from pipeline.config import ConsistencyConfig, InitConfig
+from pipeline.config.init import ConsistencyConfig, InitConfig
 from pipeline.data.scene import Scene
 from pipeline.init.fusion import check_consistency, fuse_views
 from pipeline.init.io import DepthMap, InitResult

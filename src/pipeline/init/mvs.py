@@ -26,7 +26,7 @@ import numpy as np
 from scipy import ndimage
 
 from pipeline import geometry
-from pipeline.config import InitConfig, MVSConfig
+from pipeline.config.init import InitConfig, MVSConfig
 from pipeline.data.scene import Scene
 from pipeline.init.fusion import check_consistency, fuse_views
 from pipeline.init.io import DepthMap, InitResult

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.config import InitConfig
+from pipeline.config.init import InitConfig
 from pipeline.data.scene import Scene
 from pipeline.init.io import InitResult, PointCloud
 

@@ -16,7 +16,7 @@ import cv2
 import numpy as np
 
 from pipeline import geometry
-from pipeline.config import InitConfig
+from pipeline.config.init import InitConfig
 from pipeline.data.scene import Scene
 from pipeline.init.fusion import estimate_normals
 from pipeline.init.io import InitResult, PointCloud

@@ -22,7 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline import geometry
-from pipeline.config import MeshConfig
+from pipeline.config.mesh import MeshConfig
 
 
 @dataclass

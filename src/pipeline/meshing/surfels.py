@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from pipeline import geometry
-from pipeline.config import MeshConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.data.scene import Scene
 from pipeline.meshing import tsdf
 from pipeline.optimize.surfels import SurfelParams

@@ -2,7 +2,7 @@
 cleaning (keep every connected component not much smaller than the largest).
 
 Units: depth maps are camera z in mm, the grid and the mesh are in world mm. Voxel and
-truncation sizes come from :class:`~pipeline.config.MeshConfig` in the normalised frame
+truncation sizes come from :class:`~pipeline.config.mesh.MeshConfig` in the normalised frame
 (2DGS on DTU: 0.004 and 0.016), i.e. times the scale_mat radius in mm. Open3D's camera
 model has no skew; the tiny DTU skew (|K[0, 1]| ~ 2e-4 px) is dropped here.
 """
@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import geometry, ply
-from pipeline.config import MeshConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.data.dtu import load_scene
 from pipeline.errors import InputError
 from pipeline.init.io import load_init_depths

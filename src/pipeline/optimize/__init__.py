@@ -14,10 +14,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.config import ConfigError, LossConfig, OptimizeConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
 from pipeline.data.scene import Scene
-from pipeline.errors import DegenerateResultError
-from pipeline.init.fusion import voxel_downsample
+from pipeline.errors import ConfigError, DegenerateResultError
+from pipeline.geometry import voxel_downsample
 from pipeline.init.io import PointCloud
 from pipeline.optimize.surfels import SurfelInitError, SurfelParams, init_params
 from pipeline.optimize.train import NonFiniteLossError, TrainResult, train

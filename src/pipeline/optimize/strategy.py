@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from pipeline.config import DensifyConfig
+from pipeline.config.optimize import DensifyConfig
 from pipeline.optimize import ops
 from pipeline.optimize.surfels import SurfelParams
 

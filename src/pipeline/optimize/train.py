@@ -31,7 +31,8 @@ import torch
 import torch.nn.functional as F
 
 from pipeline import atomic
-from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
 from pipeline.errors import Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
 from pipeline.mvphoto import SourceView, multiview_consistency

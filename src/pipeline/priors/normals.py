@@ -19,7 +19,7 @@ import cv2
 import numpy as np
 
 from pipeline import geometry
-from pipeline.config import PriorsConfig
+from pipeline.config.priors import PriorsConfig
 from pipeline.errors import InputError
 from pipeline.onnx_models import OnnxModel
 from pipeline.priors.features import IMAGENET_MEAN, IMAGENET_STD

@@ -19,7 +19,9 @@ import io
 import math
 from pathlib import Path
 
-from pipeline.config import SEED_REPLICATE, LossConfig, VariantConfig, merged_section
+from pipeline.config.ablation import SEED_REPLICATE, VariantConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.params import merged_section
 from pipeline.evaluation.record import Chamfer
 from pipeline.reports.read import ReportError, read_json
 

@@ -21,15 +21,17 @@ from pathlib import Path
 from typing import Any
 
 from pipeline import atomic
-from pipeline.config import EvaluateConfig, InitConfig, MeshConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.init import InitConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.data import dtu
 from pipeline.evaluation import gt
-from pipeline.runs.baseline_steps import backend_cloud, mesh_chamfer, tsdf_mesh
 from pipeline.evaluation.clouds import cloud_metrics
 from pipeline.evaluation.record import Chamfer
-from pipeline.init import BACKEND_MODULES
+from pipeline.init.backends import BACKEND_MODULES
 from pipeline.init.io import read_ply
 from pipeline.measure import Usage, run_in_child
+from pipeline.runs.baseline_steps import backend_cloud, mesh_chamfer, tsdf_mesh
 
 NO_MAST3R_MODEL = ("not run: no MASt3R ONNX model file (weights cannot be downloaded here; see docs/init.md "
                    "for the export script)")

@@ -6,7 +6,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from pipeline.config import EvaluateConfig, InitConfig, MeshConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.init import InitConfig
+from pipeline.config.mesh import MeshConfig
 
 
 def backend_cloud(scene_dir: Path, backend: str, cfg: InitConfig, out_ply: Path) -> dict:
@@ -16,7 +18,7 @@ def backend_cloud(scene_dir: Path, backend: str, cfg: InitConfig, out_ply: Path)
 
     from pipeline.data import dtu
     from pipeline.data.scene import SceneError
-    from pipeline.init import run_backend
+    from pipeline.init.backends import run_backend
     from pipeline.init.io import write_ply
 
     scene = dtu.load_scene(scene_dir, view_ids=None)

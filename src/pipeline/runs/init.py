@@ -7,10 +7,10 @@ import json
 from pathlib import Path
 
 from pipeline.atomic import atomic_dir
-from pipeline.config import InitConfig
+from pipeline.config.init import InitConfig
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import SceneError, check_scene
-from pipeline.init import run_backend
+from pipeline.init.backends import run_backend
 from pipeline.init.io import InitResult, depth_path, write_depth, write_ply
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline import atomic
-from pipeline.config import EvaluateConfig
+from pipeline.config.evaluate import EvaluateConfig
 from pipeline.data import dtu
 from pipeline.data.scene import SceneError
 from pipeline.evaluation import dtu_eval, gt

@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import MeshConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import check_made_from
 from pipeline.meshing import tsdf

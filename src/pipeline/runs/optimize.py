@@ -7,7 +7,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import LossConfig, OptimizeConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import check_made_from
 from pipeline.errors import DegenerateResultError, OutputError

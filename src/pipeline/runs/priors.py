@@ -8,14 +8,14 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from pipeline.atomic import atomic_dir
-from pipeline.config import LossConfig, PriorsConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.priors import PriorsConfig
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import check_made_from, check_scene
 from pipeline.errors import ConfigError
 from pipeline.init.io import load_init_depths
 from pipeline.onnx_models import DSINE_CONTRACT, VISMVSNET_FEATURES_CONTRACT, load_onnx
-from pipeline.priors import features as feat
-from pipeline.priors import normals as nrm
+from pipeline.priors import features as feat, normals as nrm
 from pipeline.priors.io import (
     FeaturePrior,
     NormalPrior,

@@ -6,7 +6,9 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from pipeline.config import EvaluateConfig, MeshConfig, OptimizeConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.optimize import OptimizeConfig
 from pipeline.data import dtu
 from pipeline.data.heldout import load_heldout
 from pipeline.evaluation import dtu_eval, gt, seen

@@ -1,6 +1,6 @@
 """One cell of the ablation (Table II): a variant of the method trained, meshed and scored
 on one scene, from files to files. The variant's settings are partial sections merged over
-the main params (``pipeline.config.VariantConfig``); its init cloud is the init stage's
+the main params (``pipeline.config.ablation.VariantConfig``); its init cloud is the init stage's
 dense cloud (``mvs``), or the baseline stage's sparse SIFT cloud (``sfm``) or random
 points in the bounding sphere (``random``)."""
 from __future__ import annotations
@@ -10,14 +10,19 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import (AblationConfig, ConfigError, EvaluateConfig, LossConfig, MeshConfig, OptimizeConfig,
-                             VariantConfig, merged_section, section)
+from pipeline.config.ablation import AblationConfig, VariantConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.loss import LossConfig
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import merged_section, section
+from pipeline.errors import ConfigError
 from pipeline.evaluation.record import SceneMetrics
-from pipeline.runs.score import scene_metrics
 from pipeline.measure import measure
+from pipeline.rasterizer import resolve_backend
 from pipeline.runs.mesh import mesh_surfels_dir
 from pipeline.runs.optimize import run_optimize, timing_report
-from pipeline.rasterizer import resolve_backend
+from pipeline.runs.score import scene_metrics
 
 
 def variant_configs(params: dict, variant: str) -> tuple[VariantConfig, OptimizeConfig, LossConfig, MeshConfig]:

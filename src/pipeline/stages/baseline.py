@@ -11,9 +11,13 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import EvaluateConfig, InitConfig, MeshConfig, load_params, scene_entry, section
-from pipeline.runs import baseline
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.init import InitConfig
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.params import load_params, section
+from pipeline.config.scenes import scene_entry
 from pipeline.measure import provenance
+from pipeline.runs import baseline
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

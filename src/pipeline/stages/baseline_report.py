@@ -7,7 +7,7 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import load_params
+from pipeline.config.params import load_params
 from pipeline.reports.baseline_table import markdown
 
 

@@ -10,7 +10,9 @@ import sys
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import DataConfig, EvaluateConfig, load_params, section
+from pipeline.config.data import DataConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.params import load_params, section
 from pipeline.data import dtu
 from pipeline.errors import MissingInputError
 from pipeline.evaluation import dtu_eval, gt

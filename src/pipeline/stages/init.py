@@ -9,8 +9,9 @@ import argparse
 import json
 
 from pipeline import atomic
-from pipeline.config import InitConfig, load_params, section
-from pipeline.init import match_summary
+from pipeline.config.init import InitConfig
+from pipeline.config.params import load_params, section
+from pipeline.init.backends import match_summary
 from pipeline.measure import measure
 from pipeline.runs.init import run_init
 

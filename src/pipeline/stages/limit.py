@@ -7,7 +7,9 @@ import argparse
 import json
 
 from pipeline import atomic
-from pipeline.config import DataConfig, EvaluateConfig, load_params, section
+from pipeline.config.data import DataConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.params import load_params, section
 from pipeline.runs.limit import run_limit
 
 

@@ -5,10 +5,12 @@ from __future__ import annotations
 import argparse
 import sys
 
-from pipeline.config import MeshConfig, OptimizeConfig, load_params, section
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import load_params, section
 from pipeline.meshing import tsdf
-from pipeline.runs.mesh import mesh_surfels_dir
 from pipeline.rasterizer import resolve_backend
+from pipeline.runs.mesh import mesh_surfels_dir
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

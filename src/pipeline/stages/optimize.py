@@ -12,7 +12,9 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import LossConfig, OptimizeConfig, load_params, section
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import load_params, section
 from pipeline.measure import measure
 from pipeline.runs.optimize import default_side_paths, run_optimize, timing_report
 

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.config import PARAMS_PATH, compose_params, dump_params
+from pipeline.config.params import PARAMS_PATH, compose_params, dump_params
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,7 +10,8 @@ import argparse
 
 import numpy as np
 
-from pipeline.config import DataConfig, load_params, section
+from pipeline.config.data import DataConfig
+from pipeline.config.params import load_params, section
 from pipeline.data.prepare import height_for_width, prepare_scene
 
 

@@ -10,7 +10,9 @@ from __future__ import annotations
 import argparse
 import time
 
-from pipeline.config import PriorsConfig, load_params, losses_in_use, section
+from pipeline.config.ablation import losses_in_use
+from pipeline.config.params import load_params, section
+from pipeline.config.priors import PriorsConfig
 from pipeline.measure import peak_rss_mb
 from pipeline.runs.priors import run_priors
 

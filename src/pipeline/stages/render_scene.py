@@ -6,10 +6,11 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.config import OptimizeConfig, load_params, section
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import load_params, section
 from pipeline.errors import ConfigError
-from pipeline.reports.renders import HELDOUT_VIEWS, PANEL_WIDTH, render_scene
 from pipeline.rasterizer import resolve_backend
+from pipeline.reports.renders import HELDOUT_VIEWS, PANEL_WIDTH, render_scene
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -7,9 +7,9 @@ import argparse
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import load_params
-from pipeline.reports.index import index_markdown
+from pipeline.config.params import load_params
 from pipeline.measure import provenance
+from pipeline.reports.index import index_markdown
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

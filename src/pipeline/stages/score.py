@@ -8,9 +8,14 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config import DataConfig, EvaluateConfig, MeshConfig, OptimizeConfig, load_params, scene_entry, section
-from pipeline.runs.score import scene_metrics
+from pipeline.config.data import DataConfig
+from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import load_params, section
+from pipeline.config.scenes import scene_entry
 from pipeline.rasterizer import resolve_backend
+from pipeline.runs.score import scene_metrics
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.config import SynthConfig, load_params, section
+from pipeline.config.params import load_params, section
+from pipeline.config.synth import SynthConfig
 from pipeline.errors import InputError
 
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import argparse
 
 from pipeline import atomic
-from pipeline.config import load_params
-from pipeline.reports.table1 import build_table1, csv_text, markdown
+from pipeline.config.params import load_params
 from pipeline.measure import provenance
+from pipeline.reports.table1 import build_table1, csv_text, markdown
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

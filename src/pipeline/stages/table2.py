@@ -5,9 +5,11 @@ from __future__ import annotations
 import argparse
 
 from pipeline import atomic
-from pipeline.config import AblationConfig, SynthConfig, load_params, section
-from pipeline.reports.table2 import build_table2, csv_text, markdown, read_published_ablation
+from pipeline.config.ablation import AblationConfig
+from pipeline.config.params import load_params, section
+from pipeline.config.synth import SynthConfig
 from pipeline.measure import provenance
+from pipeline.reports.table2 import build_table2, csv_text, markdown, read_published_ablation
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -10,9 +10,10 @@ import sys
 import time
 
 from pipeline import atomic
-from pipeline.config import MeshConfig, load_params, section
-from pipeline.meshing import tsdf
+from pipeline.config.mesh import MeshConfig
+from pipeline.config.params import load_params, section
 from pipeline.measure import peak_rss_mb
+from pipeline.meshing import tsdf
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import argparse
 
-from pipeline.config import DataConfig, load_params, scene_entry, section
+from pipeline.config.data import DataConfig
+from pipeline.config.params import load_params, section
+from pipeline.config.scenes import scene_entry
 from pipeline.runs.variant import run_variant
 
 

@@ -1,0 +1,22 @@
+"""The training views and resolution (conf/data)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from pipeline.config.params import check_image_size
+from pipeline.errors import ConfigError
+
+
+@dataclass
+class DataConfig:
+    """Training views and resolution (conf/data/default.yaml). ``height`` must keep the
+    source images' aspect ratio (``gcgs prepare`` refuses to squash)."""
+
+    views: list[int] = field(default_factory=lambda: [23, 24, 33])
+    width: int = 800
+    height: int = 600
+
+    def __post_init__(self) -> None:
+        if not self.views or any(int(v) != v or v < 0 for v in self.views) or len(set(self.views)) != len(self.views):
+            raise ConfigError(f"data.views must be distinct view ids >= 0, got {self.views}")
+        check_image_size("data", self.width, self.height)

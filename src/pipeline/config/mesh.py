@@ -1,0 +1,48 @@
+"""TSDF meshing (conf/mesh)."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from pipeline.errors import ConfigError
+
+
+@dataclass
+class MeshConfig:
+    """TSDF meshing of depth maps (conf/mesh/default.yaml; ``gcgs tsdf``, later ``gcgs mesh``).
+
+    Sizes are in unit-sphere radii (x the scale_mat radius = mm); 2DGS on DTU uses voxel
+    0.004 and truncation 0.016. Cleaning keeps every connected component with at least
+    ``min_component_fraction`` of the largest one's triangles, so an object in several
+    separate parts keeps its parts while small floaters go."""
+
+    voxel_norm: float = 0.004
+    trunc_norm: float = 0.016
+    min_component_fraction: float = 0.05
+    # gcgs mesh (surfels -> depth -> TSDF):
+    depth: str = "median"  # rendered depth fused: median (2DGS on DTU) | expected
+    alpha_min: float = 0.5  # pixels with less accumulated alpha have no depth
+    masks: bool = True  # zero the depth outside the input views' masks (where the scene has masks)
+    virtual_per_pair: int = 0  # virtual views rendered between each pair of input views
+    # Bounding region for depth fused without masks (meshing/region.py): the unit sphere and,
+    # when the depth shows one, the half-space above the support plane (the table).
+    region: str = "auto"  # auto (when no mask cuts the fused depth) | on | off
+    region_plane_share: float = 0.15  # a plane is the table when at least this share of depth points lie on it
+    region_plane_margin_norm: float = 0.008  # the region starts this far above the table (unit-sphere radii)
+
+    def __post_init__(self) -> None:
+        if self.region not in ("auto", "on", "off"):
+            raise ConfigError(f"mesh.region must be auto, on or off, got {self.region!r}")
+        if not 0 < self.region_plane_share <= 1 or self.region_plane_margin_norm < 0:
+            raise ConfigError("mesh: region_plane_share must be in (0, 1] and region_plane_margin_norm >= 0")
+        if self.depth not in ("median", "expected"):
+            raise ConfigError(f"mesh.depth must be median or expected, got {self.depth!r}")
+        if not 0 <= self.alpha_min < 1 or self.virtual_per_pair < 0:
+            raise ConfigError("mesh: alpha_min must be in [0, 1) and virtual_per_pair >= 0")
+        if not 0 < self.voxel_norm < self.trunc_norm:
+            raise ConfigError(f"mesh: need 0 < voxel_norm < trunc_norm, got {self.voxel_norm}, {self.trunc_norm}")
+        if not 0 <= self.min_component_fraction <= 1:
+            raise ConfigError(f"mesh.min_component_fraction must be in [0, 1], got {self.min_component_fraction}")
+
+    def sizes_mm(self, norm_scale_mm: float) -> tuple[float, float]:
+        """``(voxel_mm, trunc_mm)`` for a scene whose unit sphere has radius ``norm_scale_mm``."""
+        return self.voxel_norm * norm_scale_mm, self.trunc_norm * norm_scale_mm

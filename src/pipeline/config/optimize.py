@@ -1,0 +1,131 @@
+"""The optimize stage (conf/optimize)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from pipeline.config.params import nested_sections
+from pipeline.errors import ConfigError
+
+
+@dataclass
+class LearningRates:
+    """Adam learning rates (2DGS defaults). ``means`` decays exponentially to
+    ``means_final`` over the run; both are in normalised units x ``scene_extent``."""
+
+    means: float = 1.6e-4
+    means_final: float = 1.6e-6
+    log_scales: float = 5e-3
+    quats: float = 1e-3
+    opacity_logits: float = 0.05
+    sh_dc: float = 2.5e-3
+    sh_rest: float = 1.25e-4  # sh_dc / 20
+
+
+@dataclass
+class DensifyConfig:
+    """Adaptive density control: the configuration of :class:`pipeline.optimize.strategy.
+    DensifyStrategy` (its only one). Iterations are 0-based steps; sizes are relative to
+    ``optimize.scene_extent``."""
+
+    start_iter: int = 500
+    stop_iter: int = 15000
+    every: int = 100
+    grad_threshold: float = 2e-4  # mean screen-space gradient, normalised device units (2DGS/3DGS)
+    percent_dense: float = 0.01  # clone if max scale <= this x extent, else split
+    split_factor: float = 1.6  # a split child's scale = parent / 1.6 (2DGS: 0.8 * 2)
+    prune_opacity: float = 0.05
+    reset_every: int = 3000  # 0: never
+    reset_value: float = 0.01  # opacity reset to min(opacity, this)
+    max_world_scale: float = 0.1  # x extent, pruned after the first reset
+    max_screen_fraction: float = 0.0  # x max(W, H), pruned after the first reset (0: off)
+    max_surfels: int = 300000  # budget
+
+    def __post_init__(self) -> None:
+        where = "optimize.densify"
+        if self.every < 1:
+            raise ConfigError(f"{where}.every must be >= 1, got {self.every}")
+        if not 0 <= self.start_iter <= self.stop_iter:
+            raise ConfigError(f"{where}: need 0 <= start_iter <= stop_iter, got {self.start_iter}, {self.stop_iter}")
+        if self.reset_every < 0:
+            raise ConfigError(f"{where}.reset_every must be >= 0 (0: never), got {self.reset_every}")
+        if self.max_surfels < 1:
+            raise ConfigError(f"{where}.max_surfels must be >= 1, got {self.max_surfels}")
+        if self.split_factor <= 1:
+            raise ConfigError(f"{where}.split_factor must be > 1 (children smaller than the parent), "
+                              f"got {self.split_factor}")
+        if not 0 < self.reset_value < 1:
+            raise ConfigError(f"{where}.reset_value must be in (0, 1), got {self.reset_value}")
+        if not 0 <= self.prune_opacity < 1:
+            raise ConfigError(f"{where}.prune_opacity must be in [0, 1) (0: no pruning), got {self.prune_opacity}")
+        for key in ("grad_threshold", "percent_dense", "max_world_scale", "max_screen_fraction"):
+            if getattr(self, key) < 0:
+                raise ConfigError(f"{where}.{key} must be >= 0, got {getattr(self, key)}")
+
+
+@dataclass
+class TermStarts:
+    """Iteration from which each loss term is on (0: from the start)."""
+
+    gcf: int = 0
+    nor: int = 0
+    d: int = 3000
+    dn: int = 7000
+    mv: int = 7000  # PGSR starts its multi-view terms at 7000 of 30000
+
+
+@dataclass
+class OptimizeConfig:
+    """The optimize stage (conf/optimize/*.yaml, docs/optimize.md). Training runs in the
+    normalised frame (unit sphere of scale_mat); sizes below are in its units."""
+
+    preset: str = "custom"  # the name of the conf/optimize preset, for reports
+    backend: str = "auto"  # auto (cuda when available, else cpu) | cpu | cuda | reference
+    iterations: int = 10000
+    seed: int = 0
+    sh_degree: int = 3
+    sh_every: int = 1000  # raise the evaluated SH degree by one every this many iterations
+    masks: str = "auto"  # auto (when the scene has masks) | on | off
+    background: float = 0.0  # grey level behind the object (DTU: black)
+    init_opacity: float = 0.1
+    init_normals: bool = True  # seed each surfel's normal from its point normal (False: random, 2DGS)
+    init_voxel_norm: float = 0.0  # thin the init cloud to this voxel before seeding (0: keep every point)
+    scene_extent: float = 1.0  # the object radius in the normalised frame
+    # Resolution schedule: [from_fraction_of_iterations, downscale_factor] pairs.
+    downscale: list[list[float]] = field(default_factory=lambda: [[0.0, 1]])
+    surface_alpha: float = 0.5  # a pixel is surface (for L_gcf, L_nor) where alpha exceeds this
+    gcf_max_points: int = 16384  # L_gcf on a random subset of at most this many surface pixels (0: all)
+    mv_max_points: int = 4096  # L_mv on a random subset of at most this many surface pixels (0: all)
+    dn_depth: str = "median"  # depth whose normals L_dn compares: median (2DGS DTU) | expected
+    near: float = 0.2  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
+    far: float = 100.0
+    checkpoint_every: int = 500  # 0: no checkpoints
+    lr: LearningRates = field(default_factory=LearningRates)
+    densify: DensifyConfig = field(default_factory=DensifyConfig)
+    start: TermStarts = field(default_factory=TermStarts)
+
+    BACKENDS = ("auto", "cpu", "cuda", "reference")
+
+    def __post_init__(self) -> None:
+        nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts)
+        if self.backend not in self.BACKENDS:
+            raise ConfigError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
+        if self.masks not in ("auto", "on", "off"):
+            raise ConfigError(f"optimize.masks must be auto, on or off, got {self.masks!r}")
+        if self.dn_depth not in ("median", "expected"):
+            raise ConfigError(f"optimize.dn_depth must be median or expected, got {self.dn_depth!r}")
+        if self.iterations < 1 or not 0 <= self.sh_degree <= 3 or self.sh_every < 1:
+            raise ConfigError("optimize: iterations >= 1, sh_degree in 0..3 and sh_every >= 1 required")
+        if not self.downscale or any(len(d) != 2 or not 0 <= d[0] <= 1 or d[1] < 1 for d in self.downscale):
+            raise ConfigError(f"optimize.downscale must be [[fraction in 0..1, factor >= 1], ...], got {self.downscale}")
+        if sorted(d[0] for d in self.downscale) != [d[0] for d in self.downscale] or self.downscale[0][0] != 0:
+            raise ConfigError(f"optimize.downscale must start at fraction 0 and be sorted, got {self.downscale}")
+        if not 0 < self.init_opacity < 1 or not 0 <= self.surface_alpha < 1 or not 0 < self.near < self.far:
+            raise ConfigError("optimize: init_opacity in (0, 1), surface_alpha in [0, 1) and 0 < near < far required")
+
+    def downscale_at(self, it: int) -> int:
+        """Downscale factor of iteration ``it``."""
+        factor = self.downscale[0][1]
+        for frac, f in self.downscale:
+            if it >= frac * self.iterations:
+                factor = f
+        return int(factor)
