@@ -12,6 +12,7 @@ from optimize_scene import tiny_config, tiny_problem
 from pipeline import geometry
 from pipeline.config.mesh import MeshConfig
 from pipeline.evaluation.heldout import heldout_scores, iou, masked_psnr, visual_hull_silhouettes
+from pipeline.meshing.raycast import MeshCaster
 from pipeline.meshing.surfels import mesh_from_surfels, virtual_world_to_cams
 from pipeline.meshing.tsdf import FusionError
 from pipeline.optimize import init_from_cloud, make_views, train
@@ -80,3 +81,19 @@ def test_heldout_scores_on_training_views(trained):
     assert r["views"] == 3 and 0 <= r["iou_mean"] <= 1 and r["psnr_masked_db_mean"] > 15
     assert iou(np.ones((2, 2), bool), np.zeros((2, 2), bool)) == 0.0
     assert masked_psnr(np.zeros((1, 2, 3)), np.full((1, 2, 3), 0.1), np.array([[True, False]])) == pytest.approx(20.0)
+
+
+def test_heldout_scores_the_mesh_silhouette(trained):
+    """The mesh fused from the surfels covers most of each mask; the same mesh
+    moved out of every view's frustum covers nothing; half of it covers less."""
+    scene, params = trained
+    mesh, _ = mesh_from_surfels(params, scene, MeshConfig(voxel_norm=0.01, trunc_norm=0.04))
+    assert heldout_scores(params, scene, scene)["mesh_iou_mean"] is None  # no mesh given, no score
+    r = heldout_scores(params, scene, scene, mesh=MeshCaster(mesh.vertices_mm, mesh.triangles))
+    assert r["mesh_iou_mean"] > 0.7  # 80x60 px: the fused mesh loses a rim the surfels cover (0.81 vs 0.92)
+    assert r["mesh_iou_mean"] == pytest.approx(np.mean([v["mesh_iou"] for v in r["per_view"].values()]))
+    away = mesh.vertices_mm + 100.0 * scene.norm_scale_mm
+    assert heldout_scores(params, scene, scene, mesh=MeshCaster(away, mesh.triangles))["mesh_iou_mean"] == 0.0
+    half = mesh.triangles[mesh.vertices_mm[mesh.triangles[:, 0], 0] < np.median(mesh.vertices_mm[:, 0])]
+    r_half = heldout_scores(params, scene, scene, mesh=MeshCaster(mesh.vertices_mm, half))
+    assert r_half["mesh_iou_mean"] < r["mesh_iou_mean"] - 0.2

@@ -121,6 +121,7 @@ class HeldOut:
     iou_mean: float
     hull_iou_mean: float
     psnr_masked_db_mean: float | None
+    mesh_iou_mean: float | None = None  # the mesh's silhouette (absent from records written before it)
     per_view: dict = field(default_factory=dict)
 
     @classmethod
@@ -129,7 +130,7 @@ class HeldOut:
             raise MetricsError(f"{where}: held-out scores must be an object, got {type(data).__name__}")
         return cls(int(_number(data, "views", where)), tuple(data.get("size") or ()), _number(data, "iou_mean", where),
                    _number(data, "hull_iou_mean", where), _number(data, "psnr_masked_db_mean", where, optional=True),
-                   dict(data.get("per_view", {})))
+                   _number(data, "mesh_iou_mean", where, optional=True), dict(data.get("per_view", {})))
 
     def to_json(self) -> dict:
         return {**asdict(self), "size": list(self.size)}

@@ -62,6 +62,7 @@ def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) 
         h = metrics.heldout
         lines += [f"| held-out views ({h.views} views not used in training, "
                   f"{'x'.join(map(str, h.size))} px) | value |", "| --- | ---: |",
+                  f"| mask IoU of the mesh's silhouette | {_fmt(h.mesh_iou_mean, 3)} |",
                   f"| mask IoU of the surfels (alpha > 0.5) | {_fmt(h.iou_mean, 3)} |",
                   f"| mask IoU of the visual hull of the input masks (reference) | {_fmt(h.hull_iou_mean, 3)} |",
                   f"| PSNR over the mask (dB) | {_fmt(h.psnr_masked_db_mean, 2)} |", ""]

@@ -57,6 +57,7 @@ class HeldoutRow:
     iou: float
     hull_iou: float
     psnr_masked_db: float | None
+    mesh_iou: float | None = None  # the mesh's silhouette (absent from records written before it)
 
 
 @dataclass
@@ -174,7 +175,8 @@ def build_table1(scenes: dict[str, dict], metrics_dir: str | Path, baseline_dir:
             h = m.heldout
             if h is None:
                 raise ReportError(f"{path}: scene {name} has no ground truth, so `heldout` scores are expected")
-            heldout.append(HeldoutRow(name, h.views, h.size, h.iou_mean, h.hull_iou_mean, h.psnr_masked_db_mean))
+            heldout.append(HeldoutRow(name, h.views, h.size, h.iou_mean, h.hull_iou_mean, h.psnr_masked_db_mean,
+                                          h.mesh_iou_mean))
     rows = []
     if with_gt:
         cells = {n: method[n] for n in with_gt}
@@ -228,16 +230,18 @@ def markdown(table: Table1, commit: str) -> str:
                      + f" | {f'`{r.commit}`' if r.commit else ''} | {r.source} | {r.note} |")
     if table.heldout:
         lines += ["", "## Real scans without ground truth: held-out views", "",
-                  "The trained surfels rendered at every view of the scan not used for training, at the stored "
-                  "held-out size: mask IoU of their alpha > 0.5 against the view's object mask, the same IoU of the "
-                  "visual hull of the input masks (the trivial reference), and PSNR over the mask's pixels "
+                  "Every view of the scan not used for training, at the stored held-out size: mask IoU of the "
+                  "mesh's silhouette against the view's object mask, the same IoU of the trained surfels' alpha > 0.5 "
+                  "and of the visual hull of the input masks (the trivial reference), and PSNR of the surfels' "
+                  "colour over the mask's pixels "
                   "(`src/pipeline/evaluation/heldout.py`; `heldout` of `reports/metrics/SCENE.json`). "
                   f"Measured here at commit `{commit}`.", "",
-                  "| scene | held-out views | size (px) | mask IoU | visual hull IoU | masked PSNR (dB) |",
-                  "| --- | ---: | --- | ---: | ---: | ---: |"]
+                  "| scene | held-out views | size (px) | mesh IoU | surfels IoU | visual hull IoU | masked PSNR (dB) |",
+                  "| --- | ---: | --- | ---: | ---: | ---: | ---: |"]
         for h in table.heldout:
             psnr = "" if h.psnr_masked_db is None else f"{h.psnr_masked_db:.2f}"
-            lines.append(f"| {h.scene} | {h.views} | {'x'.join(map(str, h.size))} | {h.iou:.3f} | "
+            mesh = "" if h.mesh_iou is None else f"{h.mesh_iou:.3f}"
+            lines.append(f"| {h.scene} | {h.views} | {'x'.join(map(str, h.size))} | {mesh} | {h.iou:.3f} | "
                          f"{h.hull_iou:.3f} | {psnr} |")
     lines += ["", "## Settings of the measured runs", "",
               "From the `train` section of `reports/metrics/SCENE.json` (the optimize stage's record).", "",

@@ -15,6 +15,7 @@ from pipeline.evaluation import dtu_eval, gt, seen
 from pipeline.evaluation.depth_error import depth_errors, gt_depths_mm
 from pipeline.evaluation.heldout import heldout_scores
 from pipeline.evaluation.record import MESH_KEYS, TIMING_KEYS, TRAIN_KEYS, Chamfer, HeldOut, SceneMetrics
+from pipeline.meshing.raycast import MeshCaster
 from pipeline.meshing.surfels import input_view_depths_mm
 from pipeline.optimize.surfels import read_surfel_ply
 
@@ -46,7 +47,8 @@ def scene_metrics(name: str, scene_dir: str | Path, src_dir: str | Path, gt_dir:
         scene = dtu.load_scene(scene_dir, view_ids=None)
         heldout = load_heldout(src_dir, scene.view_ids, HELDOUT_WIDTH)
         params = read_surfel_ply(surfels_dir / "surfels.ply", scene.norm_to_world)
-    h = heldout_scores(params, scene, heldout, background=opt_cfg.background, backend=backend)
+    mesh = MeshCaster(*gt.read_mesh(mesh_dir / "mesh.ply"))
+    h = heldout_scores(params, scene, heldout, background=opt_cfg.background, backend=backend, mesh=mesh)
     return SceneMetrics(**common, heldout=HeldOut.parse(h, f"{name}: held-out scores"))
 
 
