@@ -13,6 +13,7 @@ import torch
 from pipeline.mvphoto import (
     MIN_Z,
     SourceView,
+    best_source_ncc,
     multiview_consistency,
     plane_homographies,
 )
@@ -477,3 +478,67 @@ def test_forward_backward_occlusion(scene):
     unocc = run(pix[right], [occluded])
     assert unocc["valid_fraction"].item() == pytest.approx(run(pix[right], None)["valid_fraction"].item())
     assert unocc["geo"] < 0.02
+
+
+# ------------------------------------------------------------- best_source_ncc (pruning)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_best_source_ncc_matches_slow_reference(seed):
+    """Per pixel, the best over sources of 1 - the slow reference's cost of that single
+    (pixel, source) pair without depth check (its cost is 1 - NCC there), nan where no pair
+    is valid."""
+    p = random_problem(seed, noise_image=seed != 1)
+    pixels = all_pixels(*p["depth"].shape)
+    args = to_torch(p, pixels)
+    args["sources"] = [SourceView(s.K_full, s.ref_to_src, s.grey_full) for s in args["sources"]]
+    got = best_source_ncc(**args, patch=3, min_patch_std=0.01).numpy()
+    n_valid = 0
+    for m, (x, y) in enumerate(pixels.tolist()):
+        nccs = []
+        for Kf, T, g, _, _ in p["sources"]:
+            photo, _, _, nv, _ = slow_reference(p["depth"], p["normal"], [(x, y)], p["K_train"], p["K_full"],
+                                                p["grey_ref"], [(Kf, T, g, None, None)], 3, 0.01, 1.0)
+            if nv:
+                nccs.append(1.0 - photo)
+        if nccs:
+            n_valid += 1
+            assert got[m] == pytest.approx(max(nccs), abs=1e-9), (x, y)
+        else:
+            assert np.isnan(got[m]), (x, y)
+    assert n_valid > 0.5 * len(pixels)
+
+
+def test_best_source_ncc_is_high_on_the_true_plane_only(scene):
+    def best(depth):
+        return best_source_ncc(t64(depth), t64(np.broadcast_to(scene.n, (scene.h, scene.w, 3)).copy()),
+                               all_pixels(scene.h, scene.w), t64(scene.K_train), t64(scene.K_full),
+                               t64(scene.grey_ref), scene.sources(False)).numpy()
+
+    truth = best(scene.depth)
+    assert np.isfinite(truth).mean() > 0.7
+    assert np.nanmedian(truth) > 0.99
+    # Monotone in the depth error, and low once the parallax exceeds the texture's period.
+    medians = [np.nanmedian(best(scene.depth * f)) for f in (1.01, 1.02, 1.05, 1.1)]
+    assert np.nanmedian(truth) > medians[0] > medians[1] > medians[2] > medians[3]
+    assert medians[3] < 0.4 and np.nanmedian(best(scene.depth * 0.9)) < 0.4
+
+
+def test_best_source_ncc_flat_patch_is_no_evidence(scene):
+    flat = torch.full((scene.H, scene.W), 0.5, dtype=torch.float64)
+    got = best_source_ncc(t64(scene.depth), t64(np.broadcast_to(scene.n, (scene.h, scene.w, 3)).copy()),
+                          all_pixels(scene.h, scene.w), t64(scene.K_train), t64(scene.K_full), flat,
+                          scene.sources(False))
+    assert torch.isnan(got).all()
+
+
+def test_best_source_ncc_ignores_sources_that_do_not_see_the_point(scene):
+    args = (t64(scene.depth), t64(np.broadcast_to(scene.n, (scene.h, scene.w, 3)).copy()), all_pixels(scene.h, scene.w),
+            t64(scene.K_train), t64(scene.K_full), t64(scene.grey_ref))
+    plain = best_source_ncc(*args, scene.sources(False)).numpy()
+    seen = best_source_ncc(*args, scene.sources(True)).numpy()  # exact source depths: every source sees the plane
+    both = np.isfinite(plain) & np.isfinite(seen)
+    assert both.mean() > 0.6 and np.array_equal(plain[both], seen[both])
+    occluded = best_source_ncc(*args, scene.sources(True, [0.9 * D for D in scene.depth_src])).numpy()
+    assert np.isnan(occluded).all()  # something 10% nearer in every source: no evidence
+    farther = best_source_ncc(*args, scene.sources(True, [1.1 * D for D in scene.depth_src])).numpy()
+    assert np.array_equal(np.isnan(farther), np.isnan(seen) | ~np.isfinite(farther))
+    assert np.isfinite(farther).mean() > 0.6  # a source seeing past the point still judges it

@@ -13,6 +13,7 @@ import torch
 from pipeline.config.optimize import DensifyConfig
 from pipeline.errors import ConfigError
 from pipeline.optimize import ops, terms
+from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyStrategy, screen_grad_ndc
 from pipeline.optimize.surfels import (
     SurfelInitError,
@@ -265,3 +266,34 @@ def test_mvs_depth_is_downscaled_without_averaging_across_edges_or_holes():
     out = _depth_at(d, 4, 2)
     np.testing.assert_allclose(out, [[0.0, 3.0, 0.0, 5.0], [3.0, 3.0, 0.0, 5.0]])
     np.testing.assert_array_equal(_depth_at(d, 8, 4), d)  # full size: unchanged
+
+
+def test_visible_surfels_at_matches_a_loop():
+    rng = np.random.default_rng(3)
+    h, w = 9, 12
+    K = torch.tensor([[10.0, 0, 5.5], [0, 10.0, 4.0], [0, 0, 1]], dtype=torch.float64)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, 3] = torch.tensor([0.1, -0.2, 0.3])
+    depth = torch.from_numpy(rng.uniform(4, 6, (h, w)))
+    depth[rng.uniform(size=(h, w)) < 0.2] = 0.0
+    marked = torch.from_numpy(rng.uniform(size=(h, w)) < 0.5)
+    # Surfels on the rendered surface (some pushed off it), some behind the camera or outside.
+    n = 400
+    u, v = rng.uniform(-2, w + 1, n), rng.uniform(-2, h + 1, n)
+    z = np.where(rng.uniform(size=n) < 0.1, -1.0, 5.0)
+    ui, vi = np.clip(np.round(u), 0, w - 1).astype(int), np.clip(np.round(v), 0, h - 1).astype(int)
+    z = np.where(z > 0, np.where(depth.numpy()[vi, ui] > 0, depth.numpy()[vi, ui], 5.0), z)
+    z *= 1 + rng.choice([0.0, 0.005, 0.02], n) * rng.choice([-1, 1], n)
+    cam = np.stack([(u - 5.5) / 10 * z, (v - 4.0) / 10 * z, z], -1)
+    means = torch.from_numpy(cam - T[:3, 3].numpy())  # world = camera - t (R = I)
+    got = visible_surfels_at(means, K, T, depth, marked, 0.01).numpy()
+    want = np.zeros(n, bool)
+    for i in range(n):
+        X = cam[i]
+        if X[2] <= 0:
+            continue
+        px, py = round(10 * X[0] / X[2] + 5.5), round(10 * X[1] / X[2] + 4.0)
+        if 0 <= px < w and 0 <= py < h and marked[py, px] and depth[py, px] > 0:
+            want[i] = abs(X[2] - float(depth[py, px])) <= 0.01 * float(depth[py, px])
+    assert (got == want).all()
+    assert 20 < want.sum() < n - 20

@@ -177,3 +177,29 @@ def test_scene_scale_does_not_change_the_normalised_result(problem, factor):
     res = _run(scaled, big, priors, cfg, loss)
     for k, a in base.params.tensors().items():
         assert torch.allclose(a, res.params.tensors()[k], rtol=1e-3, atol=1e-4), k
+
+
+def test_photo_reset_makes_a_surface_placed_in_front_transparent_and_keeps_the_true_one(problem):
+    """Surfels moved 8% of their depth towards input view 0 (same colours: they look right
+    in view 0, wrong in the others) are the visible surface there; the photo-consistency
+    reset caps most of their opacities and none of the true surfels'."""
+    from pipeline import geometry
+    from pipeline.optimize.train import Trainer
+
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(photo_reset={"enabled": True, "ncc_min": 0.5, "opacity": 0.01}, init_opacity=0.9)
+    c0 = geometry.camera_center(scene.world_to_cam[0])
+    moved = c0 + 0.92 * (cloud.points_mm - c0)
+    fake = PointCloud(np.concatenate([cloud.points_mm, moved]), np.concatenate([cloud.colors, cloud.colors]),
+                      np.concatenate([cloud.normals, cloud.normals]), np.ones(2 * len(cloud.points_mm)))
+    params = init_from_cloud(fake, scene, replace(cfg, init_voxel_norm=0.0))
+    n_true = len(cloud.points_mm)
+    assert params.num == 2 * n_true  # no averaging: the rows keep the cloud's order
+    trainer = Trainer(params, make_views(scene, priors, cfg, loss), cfg, loss, backend="cpu")
+    n = trainer._photo_reset(cfg.densify.start_iter)
+    opacity = torch.sigmoid(trainer.params.opacity_logits.detach()).numpy()
+    reset = opacity <= 0.01 + 1e-6
+    assert n == reset.sum() and trainer.params.num == 2 * n_true
+    assert reset[n_true:].mean() > 0.6  # 0.86 when written
+    assert reset[:n_true].mean() < 0.02  # 0 when written
+    assert np.allclose(opacity[~reset], 0.9, atol=1e-5)

@@ -329,3 +329,80 @@ def multiview_consistency(
         "geo": geo_sum / max(n_geo, 1),
         "valid_fraction": torch.tensor(n_valid / max(M * len(sources), 1), dtype=depth.dtype, device=depth.device),
     }
+
+
+@torch.no_grad()
+def best_source_ncc(
+    depth: torch.Tensor,
+    normal: torch.Tensor,
+    pixels: torch.Tensor,
+    K_train: torch.Tensor,
+    K_full: torch.Tensor,
+    grey_ref_full: torch.Tensor,
+    sources: list[SourceView],
+    patch: int = 7,
+    min_patch_std: float = 0.01,
+    occlusion_rel_tol: float = 0.01,
+) -> torch.Tensor:
+    """Per pixel, the best NCC over the sources of the reference patch warped through the
+    pixel's rendered plane: the evidence :func:`multiview_consistency` optimises, as a
+    figure (no gradient).
+
+    Same geometry and validity rules as :func:`multiview_consistency` (patch at full
+    resolution, plane homography, patch inside both images, in front of the source). A
+    source with ``depth_train`` is also no evidence where it does not see the point: its
+    rendered depth at the point's projection (read as :func:`multiview_consistency` reads
+    it) is smaller than the point's depth there by more than ``occlusion_rel_tol``
+    (relative), or it has none. Returns ``(M,)``: the largest NCC in [-1, 1] over the valid
+    sources; ``nan`` where no source is valid or the reference patch is flatter than
+    ``min_patch_std`` (no evidence either way)."""
+    _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch)
+    h, w = depth.shape
+    Kt, Kf = _as(K_train, depth), _as(K_full, depth)
+    grey_ref = _as(grey_ref_full, depth)
+    H, W = grey_ref.shape
+    sx, sy = W / w, H / h
+    xs, ys = pixels[:, 0].long().to(depth.device), pixels[:, 1].long().to(depth.device)
+    z = depth[ys, xs]
+    n = F.normalize(normal[ys, xs].to(depth.dtype), dim=-1)
+    pix = torch.stack([xs, ys], -1).to(depth.dtype)
+    X = (torch.cat([pix, torch.ones_like(pix[:, :1])], -1) @ torch.linalg.inv(Kt).t()) * z.unsqueeze(1)
+    rho = (n * X).sum(-1)
+    rho_ok = rho.abs() > MIN_Z
+    n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
+    r = patch // 2
+    o = torch.arange(-r, r + 1, dtype=depth.dtype, device=depth.device)
+    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)
+    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
+    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)
+    ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
+                  & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
+    a = _sample_grey(grey_ref, ref_pos)
+    a_c = a - a.mean(-1, keepdim=True)
+    var_a = (a_c * a_c).mean(-1)
+    ref_ok = (z > MIN_Z) & rho_ok & ref_inside & (var_a.sqrt() >= min_patch_std)
+    ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)
+    Kf_inv = torch.linalg.inv(Kf)
+    best = torch.full_like(z, float("nan"))
+    for src in sources:
+        T = _as(src.ref_to_src, depth)
+        R, t = T[:3, :3], T[:3, 3]
+        grey = _as(src.grey_full, depth)
+        Hs, Ws = grey.shape
+        uvw = torch.einsum("mij,mpj->mpi", _homographies(Kf_inv, _as(src.K_full, depth), R, t, n_over_rho), ref_h)
+        wz = uvw[..., 2]
+        w_pos = wz > MIN_Z
+        pos = uvw[..., :2] / torch.where(w_pos, wz, torch.ones_like(wz)).unsqueeze(-1)
+        Xs = X @ R.t() + t
+        front = Xs[:, 2] > MIN_Z
+        inside = ((pos[..., 0] >= 0) & (pos[..., 0] <= Ws - 1) & (pos[..., 1] >= 0) & (pos[..., 1] <= Hs - 1)).all(-1)
+        valid = ref_ok & front & w_pos.all(-1) & inside
+        if src.depth_train is not None:
+            zs = torch.where(front, Xs[:, 2], torch.ones_like(Xs[:, 2]))
+            d_src, d_ok = _sample_depth(_as(src.depth_train, depth), (Xs @ _as(src.K_train, depth).t())[:, :2] / zs.unsqueeze(1))
+            valid &= d_ok & (zs <= d_src * (1.0 + occlusion_rel_tol))
+        b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
+        b_c = b - b.mean(-1, keepdim=True)
+        ncc = (a_c * b_c).mean(-1) / torch.sqrt(var_a * (b_c * b_c).mean(-1) + NCC_EPS)
+        best = torch.where(valid & ~(ncc <= best), ncc, best)  # ~(<=): nan best takes any valid ncc
+    return best

@@ -63,6 +63,32 @@ class DensifyConfig:
 
 
 @dataclass
+class PhotoResetConfig:
+    """Opacity reset by multi-view photo-consistency (docs/optimize.md "Resetting where the
+    views disagree"): after each densification step, every input view is rendered and the
+    surfels that are the visible surface (centre projected into the pixel, centre depth
+    within ``depth_rel_tol`` of the rendered median depth) of a textured surface pixel whose
+    rendered plane has a best-source NCC below ``ncc_min`` get their opacity capped at
+    ``opacity``; the next densification step prunes those that have not regained
+    ``densify.prune_opacity``. Sources that do not see the point (their rendered depth nearer
+    by more than ``depth_rel_tol``) are no evidence. Off unless ``enabled``."""
+
+    enabled: bool = False
+    ncc_min: float = 0.5
+    depth_rel_tol: float = 0.003
+    opacity: float = 0.01  # 2DGS's opacity reset value
+
+    def __post_init__(self) -> None:
+        where = "optimize.photo_reset"
+        if not -1 <= self.ncc_min <= 1:
+            raise ConfigError(f"{where}.ncc_min must be in [-1, 1], got {self.ncc_min}")
+        if self.depth_rel_tol <= 0:
+            raise ConfigError(f"{where}.depth_rel_tol must be > 0, got {self.depth_rel_tol}")
+        if not 0 < self.opacity < 1:
+            raise ConfigError(f"{where}.opacity must be in (0, 1), got {self.opacity}")
+
+
+@dataclass
 class TermStarts:
     """Iteration from which each loss term is on (0: from the start)."""
 
@@ -102,11 +128,13 @@ class OptimizeConfig:
     lr: LearningRates = field(default_factory=LearningRates)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     start: TermStarts = field(default_factory=TermStarts)
+    photo_reset: PhotoResetConfig = field(default_factory=PhotoResetConfig)
 
     BACKENDS = ("auto", "cpu", "cuda", "reference")
 
     def __post_init__(self) -> None:
-        nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts)
+        nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts,
+                        photo_reset=PhotoResetConfig)
         if self.backend not in self.BACKENDS:
             raise ConfigError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.masks not in ("auto", "on", "off"):

@@ -76,15 +76,19 @@ class DensifyStrategy:
         r = radii.to(torch.float64) / max(width, height)
         self.state.max_radii = torch.maximum(self.state.max_radii, torch.where(visible, r, 0.0))
 
+    def refines_at(self, it: int) -> bool:
+        """Whether iteration ``it`` densifies and prunes. Not within ``every`` steps after an
+        opacity reset (as gsplat's pause_refine_after_reset): every surfel would look
+        transparent and be pruned."""
+        since_reset = it % self.cfg.reset_every if self.cfg.reset_every > 0 else it
+        return (self.cfg.start_iter <= it < self.cfg.stop_iter and it > 0 and it % self.cfg.every == 0
+                and (it < self.cfg.reset_every or since_reset >= self.cfg.every))
+
     def step_post_update(self, params: SurfelParams, optimizer: torch.optim.Optimizer, it: int,
                          generator: torch.Generator) -> dict:
         """Refine after the optimizer step of iteration ``it``; returns what changed."""
         done = {}
-        # No refinement within ``every`` steps after an opacity reset (as gsplat's
-        # pause_refine_after_reset): every surfel would look transparent and be pruned.
-        since_reset = it % self.cfg.reset_every if self.cfg.reset_every > 0 else it
-        if self.cfg.start_iter <= it < self.cfg.stop_iter and it > 0 and it % self.cfg.every == 0 and (
-                it < self.cfg.reset_every or since_reset >= self.cfg.every):
+        if self.refines_at(it):
             done.update(self._densify(params, optimizer, generator))
             after_reset = self.cfg.reset_every > 0 and it > self.cfg.reset_every
             done.update(self._prune(params, optimizer, after_reset=after_reset))

@@ -35,8 +35,9 @@ from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.errors import Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
-from pipeline.mvphoto import SourceView, multiview_consistency
+from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency
 from pipeline.optimize import ops, terms
+from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
 from pipeline.optimize.surfels import SurfelParams
 from pipeline.optimize.views import TrainViews
@@ -219,8 +220,15 @@ class Trainer:
             self._remove(bad)
         t = clock()
         self.seconds["step"] += t - t2
+        refine = self.strategy.refines_at(it)
         changes = self.strategy.step_post_update(self.params, self.optimizer, it, self.generator)
-        self.seconds["densify"] += clock() - t
+        t2 = clock()
+        self.seconds["densify"] += t2 - t
+        # After the step's pruning, so a reset surfel has until the next one to earn its
+        # opacity back (it is pruned then if it has not).
+        if cfg.photo_reset.enabled and refine:
+            changes["photo_reset"] = self._photo_reset(it)
+            self.seconds["photo_reset"] += clock() - t2
         self.it += 1
         row = {"iteration": it, "view": v.view_id, "width": w, "height": h, "surfels": self.params.num}
         row.update({k: float(x) for k, x in values.items()})
@@ -283,21 +291,64 @@ class Trainer:
         if 0 < cfg.mv_max_points < len(xs):
             pick = torch.randperm(len(xs), generator=self.generator)[: cfg.mv_max_points]
             ys, xs = ys[pick], xs[pick]
-        S = views.scene
-        K_full = torch.from_numpy(S.K[i]).float()
+        K_full = torch.from_numpy(views.scene.K[i]).float()
+        return multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
+                                     views.grey_full[i], self._sources(i, self.last_depth), patch=lw.mv_patch,
+                                     min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px)
+
+    def _sources(self, i: int, depths: dict[int, tuple[torch.Tensor, torch.Tensor]]) -> list[SourceView]:
+        """The other input views as sources of view ``i`` (full-resolution grey images),
+        each with its rendered depth and intrinsics from ``depths`` when it holds them."""
+        views = self.views
         ref_from = torch.from_numpy(np.linalg.inv(views.w2c_norm[i]))
         sources = []
         for j in range(views.num_views):
             if j == i:
                 continue
             w2c_j = torch.from_numpy(views.w2c_norm[j])
-            depth_j, K_j = self.last_depth.get(j, (None, None))
-            sources.append(SourceView(K_full=torch.from_numpy(S.K[j]).float(),
+            depth_j, K_j = depths.get(j, (None, None))
+            sources.append(SourceView(K_full=torch.from_numpy(views.scene.K[j]).float(),
                                       ref_to_src=(w2c_j @ ref_from).float(), grey_full=views.grey_full[j],
                                       depth_train=depth_j, K_train=K_j))
-        return multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
-                                     views.grey_full[i], sources, patch=lw.mv_patch,
-                                     min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px)
+        return sources
+
+    @torch.no_grad()
+    def _photo_reset(self, it: int) -> int:
+        """Cap the opacity of the surfels that are the visible surface of a textured pixel
+        whose rendered plane matches no other input view that sees it (``optimize.photo_reset``,
+        at the training resolution of ``it``). Returns how many were reset."""
+        cfg, lw, views = self.cfg, self.loss, self.views
+        pr = cfg.photo_reset
+        factor = cfg.downscale_at(it)
+        surf = self.params.surfels(min(cfg.sh_degree, it // cfg.sh_every))
+        renders, depths = [], {}
+        for i in range(views.num_views):
+            v = views.at(i, factor)
+            out = rasterize(surf, v.camera, self.backend)
+            surface = out.alpha > cfg.surface_alpha
+            if v.mask is not None:
+                surface &= v.mask
+            renders.append((out, surface))
+            depths[i] = (out.depth_median * surface, v.K)
+        reset = torch.zeros(self.params.num, dtype=torch.bool)
+        for i, (out, surface) in enumerate(renders):
+            v = views.at(i, factor)
+            ys, xs = torch.nonzero(surface, as_tuple=True)
+            if len(xs) == 0:
+                continue
+            best = best_source_ncc(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K,
+                                   torch.from_numpy(views.scene.K[i]).float(), views.grey_full[i],
+                                   self._sources(i, depths), patch=lw.mv_patch,
+                                   min_patch_std=lw.mv_min_patch_std, occlusion_rel_tol=pr.depth_rel_tol)
+            marked = torch.zeros_like(surface)
+            marked[ys, xs] = best < pr.ncc_min  # nan (no evidence) compares False
+            reset |= visible_surfels_at(self.params.means, v.K, v.world_to_cam, out.depth_median, marked,
+                                        pr.depth_rel_tol)
+        if reset.any():
+            cap = torch.logit(torch.tensor(pr.opacity, dtype=self.params.opacity_logits.dtype))
+            ops.set_values(self.params, self.optimizer, "opacity_logits",
+                           torch.where(reset, self.params.opacity_logits.clamp_max(cap), self.params.opacity_logits))
+        return int(reset.sum())
 
     def _degenerate(self) -> torch.Tensor:
         """Surfels with non-finite parameters or gradients, or a degenerate scale. The

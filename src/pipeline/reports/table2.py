@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pipeline.config.ablation import SEED_REPLICATE, VariantConfig
 from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import merged_section
 from pipeline.evaluation.record import Chamfer
 from pipeline.reports.read import ReportError, read_json
@@ -29,7 +30,7 @@ MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
 LIMIT = "3-view limit (GT seen by the input views)"
 NOT_A_METHOD = (MVS_TSDF, LIMIT)  # rows without the method's components
-COMPONENTS = ("dense_init", "gcf", "nor", "mv")
+COMPONENTS = ("dense_init", "gcf", "nor", "mv", "photo_reset")
 
 
 def seed_groups(run: list[str]) -> dict[str, list[str]]:
@@ -64,8 +65,10 @@ def _finite(x) -> float:
 
 def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool | None]:
     loss = merged_section(LossConfig, "loss", params, variant.loss if variant else {})
+    optimize = merged_section(OptimizeConfig, "optimize", params, variant.optimize if variant else {})
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
-            "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0}
+            "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
+            "photo_reset": optimize.photo_reset.enabled}
 
 
 def _row(row: str, flags: dict, runs: list[dict[str, dict]], scenes: list[str]) -> dict:
@@ -138,7 +141,7 @@ def _header(columns: list[str]) -> list[str]:
 
 
 def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[dict] | None = None) -> str:
-    head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", *scenes, "mean", "seeds"]
+    head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", "photo reset", *scenes, "mean", "seeds"]
     lines = ["# Table II: ablation on the synthetic suite (overall Chamfer, mm; lower is better)", "",
              f"Measured here by `dvc repro` (stages evaluate, variant, baseline) at commit `{commit}`, "
              "views 23/24/33 at the `data` size, the `optimize` preset of params.yaml. Rows: the 3-view "
