@@ -10,10 +10,12 @@ import pytest
 import torch
 
 from optimize_scene import tiny_config, tiny_problem
+from pipeline import geometry
 from pipeline.errors import ConfigError, DegenerateResultError
 from pipeline.init.io import PointCloud
 from pipeline.optimize import NonFiniteLossError, SurfelInitError, budget_downsample, init_from_cloud, make_views, train
 from pipeline.optimize.surfels import init_params
+from pipeline.optimize.train import Trainer
 from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals, write_features, write_normals
 from pipeline.runs.optimize import timing_report
 
@@ -183,9 +185,6 @@ def test_photo_reset_makes_a_surface_placed_in_front_transparent_and_keeps_the_t
     """Surfels moved 8% of their depth towards input view 0 (same colours: they look right
     in view 0, wrong in the others) are the visible surface there; the photo-consistency
     reset caps most of their opacities and none of the true surfels'."""
-    from pipeline import geometry
-    from pipeline.optimize.train import Trainer
-
     scene, cloud, priors = problem
     cfg, loss = tiny_config(photo_reset={"enabled": True, "ncc_min": 0.5, "opacity": 0.01}, init_opacity=0.9)
     c0 = geometry.camera_center(scene.world_to_cam[0])
