@@ -187,6 +187,83 @@ def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, pa
             _check_shape(f"sources[{i}].K_train", src.K_train, (3, 3))
 
 
+@dataclass
+class _ReferencePatches:
+    """The reference side shared by both consistency measures: the sampled pixels' points
+    ``X`` (training camera frame) and planes (``n / rho``), and their full-resolution
+    patches (centred grey ``a_c``, variance ``var_a``, homogeneous positions ``ref_h``)."""
+
+    Kt: torch.Tensor
+    Kf_inv: torch.Tensor
+    pix: torch.Tensor
+    X: torch.Tensor
+    n_over_rho: torch.Tensor
+    a_c: torch.Tensor
+    var_a: torch.Tensor
+    ok: torch.Tensor
+    ref_h: torch.Tensor
+
+
+def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std) -> _ReferencePatches:
+    h, w = depth.shape
+    Kt, Kf = _as(K_train, depth), _as(K_full, depth)
+    grey_ref = _as(grey_ref_full, depth).detach()
+    H, W = grey_ref.shape
+    sx, sy = W / w, H / h
+    xs, ys = pixels[:, 0].long().to(depth.device), pixels[:, 1].long().to(depth.device)
+    z = depth[ys, xs]
+    n = F.normalize(normal[ys, xs].to(depth.dtype), dim=-1)
+    pix = torch.stack([xs, ys], -1).to(depth.dtype)
+    pix_h = torch.cat([pix, torch.ones_like(pix[:, :1])], -1)
+    X = (pix_h @ torch.linalg.inv(Kt).t()) * z.unsqueeze(1)  # rays with z = 1, times depth
+    rho = (n * X).sum(-1)
+    rho_ok = rho.abs() > MIN_Z
+    n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
+
+    # Reference patches at full resolution: offsets (dx, dy), row-major over dy.
+    r = patch // 2
+    o = torch.arange(-r, r + 1, dtype=depth.dtype, device=depth.device)
+    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)  # (P, 2) as (x, y)
+    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
+    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)  # (M, P, 2)
+    ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
+                  & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
+    a = _sample_grey(grey_ref, ref_pos)
+    a_c = a - a.mean(-1, keepdim=True)
+    var_a = (a_c * a_c).mean(-1)
+    ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
+    ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)  # (M, P, 3)
+    return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_h)
+
+
+def _warp_into(ref: _ReferencePatches, src: SourceView, like: torch.Tensor):
+    """The reference patches warped into ``src`` through their planes. Returns ``(R, t,
+    pos (M, P, 2) source pixels, Xs (M, 3) points in the source frame, front (M,),
+    valid (M,))``, valid: reference patch usable, point in front of the source, every
+    warped patch point in front of it and inside its image."""
+    T = _as(src.ref_to_src, like)
+    R, t = T[:3, :3], T[:3, 3]
+    Hs, Ws = src.grey_full.shape
+    Hm = _homographies(ref.Kf_inv, _as(src.K_full, like), R, t, ref.n_over_rho)
+    uvw = torch.einsum("mij,mpj->mpi", Hm, ref.ref_h)
+    wz = uvw[..., 2]
+    w_pos = wz > MIN_Z
+    pos = uvw[..., :2] / torch.where(w_pos, wz, torch.ones_like(wz)).unsqueeze(-1)
+    Xs = ref.X @ R.t() + t
+    front = Xs[:, 2] > MIN_Z
+    pd = pos.detach()
+    inside = ((pd[..., 0] >= 0) & (pd[..., 0] <= Ws - 1) & (pd[..., 1] >= 0) & (pd[..., 1] <= Hs - 1)).all(-1)
+    return R, t, pos, Xs, front, ref.ok & front & w_pos.all(-1) & inside
+
+
+def _ncc(ref: _ReferencePatches, grey: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    # Invalid pairs sample at (0, 0): finite values, and their gradient is masked by the callers.
+    b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
+    b_c = b - b.mean(-1, keepdim=True)
+    cov = (ref.a_c * b_c).mean(-1)
+    return cov / torch.sqrt(ref.var_a * (b_c * b_c).mean(-1) + NCC_EPS)
+
+
 def multiview_consistency(
     depth: torch.Tensor,
     normal: torch.Tensor,
@@ -243,66 +320,20 @@ def multiview_consistency(
     is a zero that is connected to ``depth`` and ``normal`` (zero gradients).
     """
     _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch)
-    h, w = depth.shape
-    Kt, Kf = _as(K_train, depth), _as(K_full, depth)
-    grey_ref = _as(grey_ref_full, depth).detach()
-    H, W = grey_ref.shape
-    sx, sy = W / w, H / h
-    xs, ys = pixels[:, 0].long().to(depth.device), pixels[:, 1].long().to(depth.device)
-    M = len(xs)
+    M = len(pixels)
 
     # A zero that carries depth's and normal's graph with exactly zero gradients
     # (torch.where sends nothing to the branch it does not take).
     zero = (torch.where(torch.zeros_like(depth, dtype=torch.bool), depth, 0.0).sum()
             + torch.where(torch.zeros_like(normal, dtype=torch.bool), normal, 0.0).sum())
-
-    z = depth[ys, xs]
-    n = F.normalize(normal[ys, xs].to(depth.dtype), dim=-1)
-    pix = torch.stack([xs, ys], -1).to(depth.dtype)
-    pix_h = torch.cat([pix, torch.ones_like(pix[:, :1])], -1)
-    X = (pix_h @ torch.linalg.inv(Kt).t()) * z.unsqueeze(1)  # rays with z = 1, times depth
-    rho = (n * X).sum(-1)
-    rho_ok = rho.abs() > MIN_Z
-    n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
-
-    # Reference patches at full resolution: offsets (dx, dy), row-major over dy.
-    r = patch // 2
-    o = torch.arange(-r, r + 1, dtype=depth.dtype, device=depth.device)
-    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)  # (P, 2) as (x, y)
-    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
-    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)  # (M, P, 2)
-    ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
-                  & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
-    a = _sample_grey(grey_ref, ref_pos)
-    a_c = a - a.mean(-1, keepdim=True)
-    var_a = (a_c * a_c).mean(-1)
-    ref_ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
-    ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)  # (M, P, 3)
-    Kf_inv = torch.linalg.inv(Kf)
+    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std)
+    Kt, pix = ref.Kt, ref.pix
 
     photo_sum, geo_sum = zero, zero
     n_valid = n_geo = 0
     for src in sources:
-        T = _as(src.ref_to_src, depth)
-        R, t = T[:3, :3], T[:3, 3]
-        grey = _as(src.grey_full, depth).detach()
-        Hs, Ws = grey.shape
-        Hm = _homographies(Kf_inv, _as(src.K_full, depth), R, t, n_over_rho)
-        uvw = torch.einsum("mij,mpj->mpi", Hm, ref_h)
-        wz = uvw[..., 2]
-        w_pos = wz > MIN_Z
-        pos = uvw[..., :2] / torch.where(w_pos, wz, torch.ones_like(wz)).unsqueeze(-1)
-        Xs = X @ R.t() + t
-        front = Xs[:, 2] > MIN_Z
-        pd = pos.detach()
-        inside = ((pd[..., 0] >= 0) & (pd[..., 0] <= Ws - 1) & (pd[..., 1] >= 0) & (pd[..., 1] <= Hs - 1)).all(-1)
-        valid = ref_ok & front & w_pos.all(-1) & inside
-        # Invalid pairs sample at (0, 0): finite values, and their gradient is masked below.
-        b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
-        b_c = b - b.mean(-1, keepdim=True)
-        cov = (a_c * b_c).mean(-1)
-        ncc = cov / torch.sqrt(var_a * (b_c * b_c).mean(-1) + NCC_EPS)
-        cost = (1.0 - ncc).clamp(0.0, 2.0)
+        R, t, pos, Xs, front, valid = _warp_into(ref, src, depth)
+        cost = (1.0 - _ncc(ref, _as(src.grey_full, depth).detach(), pos, valid)).clamp(0.0, 2.0)
 
         weight = torch.ones_like(cost)
         if src.depth_train is not None:
@@ -357,52 +388,14 @@ def best_source_ncc(
     sources; ``nan`` where no source is valid or the reference patch is flatter than
     ``min_patch_std`` (no evidence either way)."""
     _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch)
-    h, w = depth.shape
-    Kt, Kf = _as(K_train, depth), _as(K_full, depth)
-    grey_ref = _as(grey_ref_full, depth)
-    H, W = grey_ref.shape
-    sx, sy = W / w, H / h
-    xs, ys = pixels[:, 0].long().to(depth.device), pixels[:, 1].long().to(depth.device)
-    z = depth[ys, xs]
-    n = F.normalize(normal[ys, xs].to(depth.dtype), dim=-1)
-    pix = torch.stack([xs, ys], -1).to(depth.dtype)
-    X = (torch.cat([pix, torch.ones_like(pix[:, :1])], -1) @ torch.linalg.inv(Kt).t()) * z.unsqueeze(1)
-    rho = (n * X).sum(-1)
-    rho_ok = rho.abs() > MIN_Z
-    n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
-    r = patch // 2
-    o = torch.arange(-r, r + 1, dtype=depth.dtype, device=depth.device)
-    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)
-    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
-    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)
-    ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
-                  & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
-    a = _sample_grey(grey_ref, ref_pos)
-    a_c = a - a.mean(-1, keepdim=True)
-    var_a = (a_c * a_c).mean(-1)
-    ref_ok = (z > MIN_Z) & rho_ok & ref_inside & (var_a.sqrt() >= min_patch_std)
-    ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)
-    Kf_inv = torch.linalg.inv(Kf)
-    best = torch.full_like(z, float("nan"))
+    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std)
+    best = torch.full_like(ref.X[:, 2], float("nan"))
     for src in sources:
-        T = _as(src.ref_to_src, depth)
-        R, t = T[:3, :3], T[:3, 3]
-        grey = _as(src.grey_full, depth)
-        Hs, Ws = grey.shape
-        uvw = torch.einsum("mij,mpj->mpi", _homographies(Kf_inv, _as(src.K_full, depth), R, t, n_over_rho), ref_h)
-        wz = uvw[..., 2]
-        w_pos = wz > MIN_Z
-        pos = uvw[..., :2] / torch.where(w_pos, wz, torch.ones_like(wz)).unsqueeze(-1)
-        Xs = X @ R.t() + t
-        front = Xs[:, 2] > MIN_Z
-        inside = ((pos[..., 0] >= 0) & (pos[..., 0] <= Ws - 1) & (pos[..., 1] >= 0) & (pos[..., 1] <= Hs - 1)).all(-1)
-        valid = ref_ok & front & w_pos.all(-1) & inside
+        _, _, pos, Xs, front, valid = _warp_into(ref, src, depth)
         if src.depth_train is not None:
             zs = torch.where(front, Xs[:, 2], torch.ones_like(Xs[:, 2]))
             d_src, d_ok = _sample_depth(_as(src.depth_train, depth), (Xs @ _as(src.K_train, depth).t())[:, :2] / zs.unsqueeze(1))
             valid &= d_ok & (zs <= d_src * (1.0 + occlusion_rel_tol))
-        b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
-        b_c = b - b.mean(-1, keepdim=True)
-        ncc = (a_c * b_c).mean(-1) / torch.sqrt(var_a * (b_c * b_c).mean(-1) + NCC_EPS)
+        ncc = _ncc(ref, _as(src.grey_full, depth), pos, valid)
         best = torch.where(valid & ~(ncc <= best), ncc, best)  # ~(<=): nan best takes any valid ncc
     return best

@@ -45,7 +45,8 @@ from pipeline.rasterizer import rasterize, resolve_backend
 
 MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
 MAX_SCALE = 10.0  # x scene_extent; above, a surfel covers everything (degenerate)
-TIMED = ("render", "photo", "gcf", "mv", "nor", "mvs", "dn", "dist", "mask", "backward", "step", "densify")
+TIMED = ("render", "photo", "gcf", "mv", "nor", "mvs", "dn", "dist", "mask", "backward", "step", "densify",
+         "photo_reset")
 
 
 class NonFiniteLossError(RuntimeError):
