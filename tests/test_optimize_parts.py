@@ -297,3 +297,44 @@ def test_visible_surfels_at_matches_a_loop():
             want[i] = abs(X[2] - float(depth[py, px])) <= 0.01 * float(depth[py, px])
     assert (got == want).all()
     assert 20 < want.sum() < n - 20
+
+
+def _smoothness_loop(n: torch.Tensor, img: torch.Tensor, valid: torch.Tensor, gamma: float) -> torch.Tensor:
+    u = torch.nn.functional.normalize(n, dim=0)
+    total, count = 0.0, 0
+    _, H, W = n.shape
+    for y in range(H):
+        for x in range(W):
+            for yy, xx in ((y, x + 1), (y + 1, x)):
+                if yy < H and xx < W and valid[y, x] and valid[yy, xx]:
+                    edge = (img[:, y, x] - img[:, yy, xx]).abs().mean()
+                    total = total + (u[:, y, x] - u[:, yy, xx]).abs().sum() * torch.exp(-gamma * edge)
+                    count += 1
+    return total / max(count, 1)
+
+
+def test_normal_smoothness_matches_a_loop_and_gradcheck():
+    g = torch.Generator().manual_seed(3)
+    n = torch.randn(3, 6, 7, dtype=torch.float64, generator=g).requires_grad_(True)
+    img = torch.rand(3, 6, 7, dtype=torch.float64, generator=g)
+    valid = torch.rand(6, 7, generator=g) > 0.3
+    got = terms.normal_smoothness_loss(n, img, valid, 10.0)
+    assert torch.allclose(got, _smoothness_loop(n, img, valid, 10.0), rtol=1e-12, atol=1e-14)
+    assert torch.autograd.gradcheck(lambda t: terms.normal_smoothness_loss(t, img, valid, 10.0), (n,))
+
+
+def test_normal_smoothness_spares_image_edges_and_ignores_length():
+    # Two flat halves with different normals: the crease costs where the image is flat,
+    # almost nothing where the image has an edge at the crease; scaling normals changes nothing.
+    n = torch.zeros(3, 4, 6, dtype=torch.float64)
+    n[2] = -1.0
+    n[0, :, 3:] = 1.0
+    valid = torch.ones(4, 6, dtype=torch.bool)
+    flat = torch.full((3, 4, 6), 0.5, dtype=torch.float64)
+    edge = flat.clone()
+    edge[:, :, 3:] = 1.0
+    on_flat = terms.normal_smoothness_loss(n, flat, valid, 10.0)
+    assert on_flat > 0
+    assert terms.normal_smoothness_loss(n, edge, valid, 10.0) < 0.01 * on_flat
+    assert torch.allclose(terms.normal_smoothness_loss(3.0 * n, flat, valid, 10.0), on_flat)
+    assert terms.normal_smoothness_loss(n, flat, torch.zeros_like(valid), 10.0) == 0

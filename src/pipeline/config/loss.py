@@ -32,10 +32,17 @@ class LossConfig:
     mv_patch: int = 7  # NCC patch side, full-resolution pixels (odd)
     mv_min_patch_std: float = 0.01  # grey std below which a patch is flat: no NCC there
     mv_max_fb_px: float = 1.0  # forward-backward reprojection error (training pixels) above which a pair is occluded
+    # L_smooth: edge-aware smoothness of the rendered normals (neighbouring surface pixels'
+    # unit normals alike where the image is flat: weight exp(-smooth_gamma |grad I|)), from
+    # start.mv. 0: off.
+    lambda_smooth: float = 0.0
+    smooth_gamma: float = 10.0
 
     def __post_init__(self) -> None:
         if self.mv_patch < 3 or self.mv_patch % 2 == 0:
             raise ConfigError(f"loss.mv_patch must be odd and >= 3, got {self.mv_patch}")
+        if min(self.lambda_smooth, self.smooth_gamma) < 0:
+            raise ConfigError("loss.lambda_smooth and smooth_gamma must be >= 0")
         if min(self.lambda_mv, self.lambda_mvgeo, self.mv_min_patch_std) < 0 or self.mv_max_fb_px <= 0:
             raise ConfigError("loss.lambda_mv, lambda_mvgeo and mv_min_patch_std must be >= 0 and mv_max_fb_px > 0")
         if self.lambda_mvs < 0 or not 0.0 <= self.mvs_final:

@@ -80,3 +80,23 @@ def mvs_depth_loss(depth: torch.Tensor, mvs_depth: torch.Tensor, valid: torch.Te
 def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     """Mean ``|alpha - mask|``: background pixels pull alpha to 0, object pixels to 1."""
     return (alpha - mask.to(alpha)).abs().mean()
+
+
+def normal_smoothness_loss(normal: torch.Tensor, image: torch.Tensor, valid: torch.Tensor, gamma: float) -> torch.Tensor:
+    """Edge-aware smoothness of a normal map: over the pairs of 4-neighbour pixels that are
+    both ``valid``, the mean of ``|n_p - n_q|_1 exp(-gamma |I_p - I_q|)`` (unit normals,
+    ``|I_p - I_q|`` the mean absolute difference over the channels), so normals agree where
+    the image is flat and may turn at image edges. ``normal``: ``(3, H, W)``; ``image``:
+    ``(C, H, W)``; ``valid``: ``(H, W)`` bool. 0 (connected to ``normal``) without pairs."""
+    n = F.normalize(normal, dim=0)
+    image = image.detach()
+    total, count = normal.sum() * 0.0, 0
+    for dim in (1, 2):
+        size = n.shape[dim] - 1
+        a, b = n.narrow(dim, 0, size), n.narrow(dim, 1, size)
+        ok = valid.narrow(dim - 1, 0, size) & valid.narrow(dim - 1, 1, size)
+        edge = (image.narrow(dim, 0, size) - image.narrow(dim, 1, size)).abs().mean(0)
+        cost = (a - b).abs().sum(0) * torch.exp(-gamma * edge)
+        total = total + torch.where(ok, cost, torch.zeros_like(cost)).sum()
+        count += int(ok.sum())
+    return total / max(count, 1)

@@ -46,7 +46,7 @@ from pipeline.rasterizer import rasterize, resolve_backend
 MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
 MAX_SCALE = 10.0  # x scene_extent; above, a surfel covers everything (degenerate)
 TIMED = ("render", "photo", "gcf", "mv", "nor", "mvs", "dn", "dist", "mask", "backward", "step", "densify",
-         "photo_reset")
+         "photo_reset", "smooth")
 
 
 class NonFiniteLossError(RuntimeError):
@@ -268,6 +268,9 @@ class Trainer:
             yield "mv", mv["photo"], lw.lambda_mv
             yield "mvgeo", mv["geo"], lw.lambda_mvgeo
             yield "mv_valid", mv["valid_fraction"], None
+        if lw.lambda_smooth > 0 and it >= cfg.start.mv:
+            yield "smooth", terms.normal_smoothness_loss(out.normal_cam.permute(2, 0, 1), target, surface,
+                                                         lw.smooth_gamma), lw.lambda_smooth
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
             n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
             l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)

@@ -30,7 +30,7 @@ MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
 LIMIT = "3-view limit (GT seen by the input views)"
 NOT_A_METHOD = (MVS_TSDF, LIMIT)  # rows without the method's components
-COMPONENTS = ("dense_init", "gcf", "nor", "mv", "photo_reset")
+COMPONENTS = ("dense_init", "gcf", "nor", "mv", "photo_reset", "smooth")
 
 
 def seed_groups(run: list[str]) -> dict[str, list[str]]:
@@ -68,7 +68,7 @@ def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool |
     optimize = merged_section(OptimizeConfig, "optimize", params, variant.optimize if variant else {})
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
             "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
-            "photo_reset": optimize.photo_reset.enabled}
+            "photo_reset": optimize.photo_reset.enabled, "smooth": loss.lambda_smooth > 0}
 
 
 def _row(row: str, flags: dict, runs: list[dict[str, dict]], scenes: list[str]) -> dict:
@@ -141,7 +141,7 @@ def _header(columns: list[str]) -> list[str]:
 
 
 def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[dict] | None = None) -> str:
-    head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", "photo reset", *scenes, "mean", "seeds"]
+    head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", "photo reset", "L_smooth", *scenes, "mean", "seeds"]
     lines = ["# Table II: ablation on the synthetic suite (overall Chamfer, mm; lower is better)", "",
              f"Measured here by `dvc repro` (stages evaluate, variant, baseline) at commit `{commit}`, "
              "views 23/24/33 at the `data` size, the `optimize` preset of params.yaml. Rows: the 3-view "
