@@ -256,6 +256,16 @@ def _warp_into(ref: _ReferencePatches, src: SourceView, like: torch.Tensor):
     return R, t, pos, Xs, front, ref.ok & front & w_pos.all(-1) & inside
 
 
+def _source_depth_at(Xs: torch.Tensor, front: torch.Tensor, src: SourceView, like: torch.Tensor):
+    """Where the points ``Xs`` (source camera frame) project into ``src``'s training pixels
+    and the source's rendered depth there (:func:`_sample_depth`, detached). Returns ``(p
+    (M, 2), zs (M,) the points' depths, 1 where not in front, d_src (M,), d_ok (M,))``."""
+    zs = torch.where(front, Xs[:, 2], torch.ones_like(Xs[:, 2]))
+    p = (Xs @ _as(src.K_train, like).t())[:, :2] / zs.unsqueeze(1)
+    d_src, d_ok = _sample_depth(_as(src.depth_train, like).detach(), p)
+    return p, zs, d_src, d_ok
+
+
 def _ncc(ref: _ReferencePatches, grey: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     # Invalid pairs sample at (0, 0): finite values, and their gradient is masked by the callers.
     b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
@@ -337,11 +347,8 @@ def multiview_consistency(
 
         weight = torch.ones_like(cost)
         if src.depth_train is not None:
-            D = _as(src.depth_train, depth).detach()
             Ks = _as(src.K_train, depth)
-            zs = torch.where(front, Xs[:, 2], torch.ones_like(Xs[:, 2]))
-            p = (Xs @ Ks.t())[:, :2] / zs.unsqueeze(1)
-            d_src, d_ok = _sample_depth(D, p)
+            p, _, d_src, d_ok = _source_depth_at(Xs, front, src, depth)
             Ys = (torch.cat([p, torch.ones_like(p[:, :1])], -1) @ torch.linalg.inv(Ks).t()) * d_src.unsqueeze(1)
             Y = (Ys - t) @ R  # R^T (Ys - t): back into the reference frame
             q = Y @ Kt.t()
@@ -393,8 +400,7 @@ def best_source_ncc(
     for src in sources:
         _, _, pos, Xs, front, valid = _warp_into(ref, src, depth)
         if src.depth_train is not None:
-            zs = torch.where(front, Xs[:, 2], torch.ones_like(Xs[:, 2]))
-            d_src, d_ok = _sample_depth(_as(src.depth_train, depth), (Xs @ _as(src.K_train, depth).t())[:, :2] / zs.unsqueeze(1))
+            _, zs, d_src, d_ok = _source_depth_at(Xs, front, src, depth)
             valid &= d_ok & (zs <= d_src * (1.0 + occlusion_rel_tol))
         ncc = _ncc(ref, _as(src.grey_full, depth), pos, valid)
         best = torch.where(valid & ~(ncc <= best), ncc, best)  # ~(<=): nan best takes any valid ncc

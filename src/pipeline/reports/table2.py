@@ -30,7 +30,9 @@ MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
 LIMIT = "3-view limit (GT seen by the input views)"
 NOT_A_METHOD = (MVS_TSDF, LIMIT)  # rows without the method's components
-COMPONENTS = ("dense_init", "gcf", "nor", "mv", "photo_reset", "smooth")
+# The method's components (CSV column: Markdown header), in the table's column order.
+COMPONENTS = {"dense_init": "dense init", "gcf": "L_gcf", "nor": "L_nor", "mv": "L_mv", "photo_reset": "photo reset",
+              "smooth": "L_smooth"}
 
 
 def seed_groups(run: list[str]) -> dict[str, list[str]]:
@@ -141,7 +143,7 @@ def _header(columns: list[str]) -> list[str]:
 
 
 def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[dict] | None = None) -> str:
-    head = ["row", "dense init", "L_gcf", "L_nor", "L_mv", "photo reset", "L_smooth", *scenes, "mean", "seeds"]
+    head = ["row", *COMPONENTS.values(), *scenes, "mean", "seeds"]
     lines = ["# Table II: ablation on the synthetic suite (overall Chamfer, mm; lower is better)", "",
              f"Measured here by `dvc repro` (stages evaluate, variant, baseline) at commit `{commit}`, "
              "views 23/24/33 at the `data` size, the `optimize` preset of params.yaml. Rows: the 3-view "
