@@ -89,10 +89,11 @@ def depth_lookup_np(D: np.ndarray, x: float, y: float) -> float | None:
     return None
 
 
-def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, patch, min_std, max_fb):
+def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, patch, min_std, max_fb, gamma=0.0):
     """Loop-per-pixel, per-source, per-patch-position PGSR consistency in numpy. Warps by
     explicit ray-plane intersection (not a homography). ``sources``: tuples
-    ``(K_full, ref_to_src, grey, depth_train or None, K_train or None)``.
+    ``(K_full, ref_to_src, grey, depth_train or None, K_train or None)``; ``gamma > 0``:
+    NCC with adaptive support weights ``exp(-|a - a_centre| / gamma)``.
     Returns ``(photo, geo, valid_fraction, n_valid, n_geo)``."""
     h, w = depth.shape
     H, W = grey_ref.shape
@@ -109,7 +110,13 @@ def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, pa
         pts = [(cx + dx, cy + dy) for dy in range(-r, r + 1) for dx in range(-r, r + 1)]
         ref_in = all(0 <= u <= W - 1 and 0 <= v <= H - 1 for u, v in pts)
         a = np.array([bilinear_np(grey_ref, u, v) for u, v in pts]) if ref_in else None
-        if not (z > MIN_Z and abs(rho) > MIN_Z and ref_in and a.std() >= min_std):
+        wts = np.full(len(pts), 1.0 / len(pts))
+        if ref_in and gamma > 0:
+            wts = np.exp(-np.abs(a - a[len(pts) // 2]) / gamma)
+            wts /= wts.sum()
+        ma = wts @ a if ref_in else 0.0
+        var_a = wts @ (a - ma) ** 2 if ref_in else 0.0
+        if not (z > MIN_Z and abs(rho) > MIN_Z and ref_in and math.sqrt(var_a) >= min_std):
             continue
         for Ks_full, T, grey, D, Ks in sources:
             R, t = T[:3, :3], T[:3, 3]
@@ -131,7 +138,8 @@ def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, pa
             if len(b) < len(pts):
                 continue
             b = np.array(b)
-            ncc = np.mean((a - a.mean()) * (b - b.mean())) / np.sqrt(a.var() * b.var() + 1e-8)
+            mb = wts @ b
+            ncc = (wts @ ((a - ma) * (b - mb))) / np.sqrt(var_a * (wts @ (b - mb) ** 2) + 1e-8)
             cost = min(max(1.0 - ncc, 0.0), 2.0)
             weight = 1.0
             if D is not None:
@@ -239,16 +247,17 @@ def test_plane_homographies_match_ray_plane_intersection():
 
 
 # ------------------------------------------------------------------ 2. slow reference
-@pytest.mark.parametrize("seed,patch,max_fb", [(0, 3, 0.05), (1, 5, 0.2), (2, 3, 1.0)])
-def test_matches_slow_reference(seed, patch, max_fb):
+@pytest.mark.parametrize("seed,patch,max_fb,gamma", [(0, 3, 0.05, 0.0), (1, 5, 0.2, 0.0), (2, 3, 1.0, 0.0),
+                                                    (0, 3, 0.2, 0.05), (1, 5, 1.0, 0.1)])
+def test_matches_slow_reference(seed, patch, max_fb, gamma):
     p = random_problem(seed)
     h, w = p["depth"].shape
     p["grey_ref"][: 2 * h // 2, : 2 * w // 3] = 0.4  # a textureless block: excluded pairs
     pixels = all_pixels(h, w)
-    out = multiview_consistency(**to_torch(p, pixels, patch=patch, max_fb_px=max_fb))
+    out = multiview_consistency(**to_torch(p, pixels, patch=patch, max_fb_px=max_fb, ncc_gamma=gamma))
     photo, geo, frac, n_valid, n_geo = slow_reference(
         p["depth"], p["normal"], pixels.tolist(), p["K_train"], p["K_full"], p["grey_ref"], p["sources"],
-        patch, 0.01, max_fb)
+        patch, 0.01, max_fb, gamma)
     # Non-trivial: valid and invalid pairs, and some with the forward-backward check.
     assert 5 <= n_valid < 0.9 * len(pixels) * 2 and n_geo >= 3
     assert out["valid_fraction"].item() == pytest.approx(frac, abs=1e-12)
@@ -294,6 +303,35 @@ def test_gradcheck_photo_and_geo():
     assert torch.autograd.gradcheck(f, (depth, normal), eps=1e-6, atol=1e-6, rtol=1e-4)
     g_d, g_n = torch.autograd.grad(out["photo"] + out["geo"], (depth, normal))
     assert g_d.abs().sum() > 0 and g_n.abs().sum() > 0
+
+    def f_weighted(d, n):
+        return multiview_consistency(d, n, **photo_args, ncc_gamma=0.05)["photo"]
+
+    assert multiview_consistency(depth, normal, **photo_args, ncc_gamma=0.05)["photo"] > 1e-3
+    assert torch.autograd.gradcheck(f_weighted, (depth, normal), eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_adaptive_support_weights_limit_and_effect():
+    """A very large ``ncc_gamma`` gives (numerically) uniform weights: plain NCC; a small one
+    changes the cost, in both L_mv and best_source_ncc."""
+    p = random_problem(1)
+    pixels = all_pixels(*p["depth"].shape)
+    plain = multiview_consistency(**to_torch(p, pixels, patch=5))
+    wide = multiview_consistency(**to_torch(p, pixels, patch=5, ncc_gamma=1e9))
+    sharp = multiview_consistency(**to_torch(p, pixels, patch=5, ncc_gamma=0.02))
+    assert wide["photo"].item() == pytest.approx(plain["photo"].item(), abs=1e-9)
+    assert abs(sharp["photo"].item() - plain["photo"].item()) > 1e-3
+    args = to_torch(p, pixels, patch=5)
+    args.pop("max_fb_px", None)
+    b_plain = best_source_ncc(**args)
+    b_wide = best_source_ncc(**args, ncc_gamma=1e9)
+    b_sharp = best_source_ncc(**args, ncc_gamma=0.02)
+    both = ~torch.isnan(b_plain)
+    assert both.sum() >= 5 and torch.equal(both, ~torch.isnan(b_wide))
+    assert torch.allclose(b_wide[both], b_plain[both], atol=1e-9)
+    # Sharp weights also make some patches flat (weighted std below min_patch_std): nan there.
+    sharp_ok = both & ~torch.isnan(b_sharp)
+    assert sharp_ok.sum() >= 5 and (b_sharp[sharp_ok] - b_plain[sharp_ok]).abs().max() > 1e-3
 
 
 # --------------------------------------------------------- 4. minimum at the true plane
@@ -394,6 +432,9 @@ def _args():
     (lambda a: a.update(pixels=torch.tensor([[-1, 0]])), "pixels"),
     (lambda a: a.update(patch=4), "patch"),
     (lambda a: a.update(patch=0), "patch"),
+    (lambda a: a.update(ncc_gamma=-0.1), "ncc_gamma"),
+    (lambda a: a.update(ncc_gamma=float("nan")), "ncc_gamma"),
+    (lambda a: a.update(ncc_gamma=float("inf")), "ncc_gamma"),
     (lambda a: a.update(K_train=a["K_train"][:2]), "K_train"),
     (lambda a: a.update(K_full=a["K_full"] * 1.01), "K_full"),
     (lambda a: a.update(grey_ref_full=a["grey_ref_full"][None]), "grey_ref_full"),

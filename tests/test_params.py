@@ -75,6 +75,9 @@ def test_section_applies_overrides_before_validation():
         section(DataConfig, "data", params, {"views": [1, 1]})
     with pytest.raises(ConfigError, match=r"loss.gcf_max_dissimilarity must be in \(0, 2\]"):
         section(LossConfig, "loss", params, {"gcf_max_dissimilarity": 0.0})
+    for bad in (-0.01, float("nan"), float("inf")):
+        with pytest.raises(ConfigError, match="loss.mv_ncc_gamma must be a finite number >= 0"):
+            section(LossConfig, "loss", params, {"mv_ncc_gamma": bad})
 
 
 def test_one_list_of_init_backends():

@@ -17,6 +17,7 @@ with intrinsics ``K_train``; the images are at the *full* resolution ``(H, W)`` 
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -147,7 +148,7 @@ def _scale_matrix(h: int, w: int, H: int, W: int, like: torch.Tensor) -> torch.T
     return _as([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]], like)
 
 
-def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch) -> None:
+def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma) -> None:
     if not torch.is_tensor(depth) or depth.ndim != 2 or not depth.is_floating_point():
         raise ValueError(f"depth must be a float (h, w) tensor, got {getattr(depth, 'shape', type(depth))}")
     h, w = depth.shape
@@ -174,6 +175,8 @@ def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, pa
         )
     if not isinstance(patch, int) or patch < 1 or patch % 2 == 0:
         raise ValueError(f"patch must be an odd positive int, got {patch!r}")
+    if not (isinstance(ncc_gamma, (int, float)) and math.isfinite(ncc_gamma) and ncc_gamma >= 0):
+        raise ValueError(f"ncc_gamma must be a finite number >= 0 (0: plain NCC), got {ncc_gamma!r}")
     for i, src in enumerate(sources):
         _check_shape(f"sources[{i}].K_full", src.K_full, (3, 3))
         _check_shape(f"sources[{i}].ref_to_src", src.ref_to_src, (4, 4))
@@ -191,7 +194,8 @@ def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, pa
 class _ReferencePatches:
     """The reference side shared by both consistency measures: the sampled pixels' points
     ``X`` (training camera frame) and planes (``n / rho``), and their full-resolution
-    patches (centred grey ``a_c``, variance ``var_a``, homogeneous positions ``ref_h``)."""
+    patches (centred grey ``a_c``, variance ``var_a``, homogeneous positions ``ref_h``;
+    ``weight`` (M, P): support weights summing to 1 per patch, ``None``: uniform)."""
 
     Kt: torch.Tensor
     Kf_inv: torch.Tensor
@@ -202,9 +206,11 @@ class _ReferencePatches:
     var_a: torch.Tensor
     ok: torch.Tensor
     ref_h: torch.Tensor
+    weight: torch.Tensor | None
 
 
-def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std) -> _ReferencePatches:
+def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std,
+                       ncc_gamma: float = 0.0) -> _ReferencePatches:
     h, w = depth.shape
     Kt, Kf = _as(K_train, depth), _as(K_full, depth)
     grey_ref = _as(grey_ref_full, depth).detach()
@@ -229,11 +235,21 @@ def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, pa
     ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
                   & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
     a = _sample_grey(grey_ref, ref_pos)
-    a_c = a - a.mean(-1, keepdim=True)
-    var_a = (a_c * a_c).mean(-1)
+    weight = None
+    if ncc_gamma > 0:
+        # Adaptive support (Yoon & Kweon 2006): patch pixels whose grey differs from the
+        # centre's count less, so a patch across a depth edge is judged by the centre's side.
+        centre_grey = a[:, offsets.shape[0] // 2].unsqueeze(1)
+        weight = torch.exp(-(a - centre_grey).abs() / ncc_gamma)
+        weight = weight / weight.sum(-1, keepdim=True)
+        a_c = a - (weight * a).sum(-1, keepdim=True)
+        var_a = (weight * a_c * a_c).sum(-1)
+    else:
+        a_c = a - a.mean(-1, keepdim=True)
+        var_a = (a_c * a_c).mean(-1)
     ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
     ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)  # (M, P, 3)
-    return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_h)
+    return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_h, weight)
 
 
 def _warp_into(ref: _ReferencePatches, src: SourceView, like: torch.Tensor):
@@ -269,9 +285,14 @@ def _source_depth_at(Xs: torch.Tensor, front: torch.Tensor, src: SourceView, lik
 def _ncc(ref: _ReferencePatches, grey: torch.Tensor, pos: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
     # Invalid pairs sample at (0, 0): finite values, and their gradient is masked by the callers.
     b = _sample_grey(grey, torch.where(valid.view(-1, 1, 1), pos, torch.zeros_like(pos)))
-    b_c = b - b.mean(-1, keepdim=True)
-    cov = (ref.a_c * b_c).mean(-1)
-    return cov / torch.sqrt(ref.var_a * (b_c * b_c).mean(-1) + NCC_EPS)
+    w = ref.weight
+    if w is None:
+        b_c = b - b.mean(-1, keepdim=True)
+        cov = (ref.a_c * b_c).mean(-1)
+        return cov / torch.sqrt(ref.var_a * (b_c * b_c).mean(-1) + NCC_EPS)
+    b_c = b - (w * b).sum(-1, keepdim=True)
+    cov = (w * ref.a_c * b_c).sum(-1)
+    return cov / torch.sqrt(ref.var_a * (w * b_c * b_c).sum(-1) + NCC_EPS)
 
 
 def multiview_consistency(
@@ -285,6 +306,7 @@ def multiview_consistency(
     patch: int = 7,
     min_patch_std: float = 0.01,
     max_fb_px: float = 1.0,
+    ncc_gamma: float = 0.0,
 ) -> dict[str, torch.Tensor]:
     """PGSR's multi-view photometric and geometric consistency of one reference view.
 
@@ -296,7 +318,10 @@ def multiview_consistency(
     ``K_full`` and ``src.K_full``) warps the patch into ``src.grey_full`` (bilinear; the
     gradient reaches depth and normal through the warped positions), and the cost is
     ``clamp(1 - NCC, 0, 2)``, ``NCC = cov / sqrt(var_ref var_src + 1e-8)`` (population
-    moments over the patch).
+    moments over the patch; with ``ncc_gamma > 0`` weighted moments, each patch pixel
+    weighted by ``exp(-|a - a_centre| / ncc_gamma)`` of its reference grey ``a``, normalised
+    to sum 1: adaptive support weights, so a patch straddling a depth edge is judged by the
+    pixels on the centre's side).
 
     A (pixel, source) pair is valid when: the depth is positive, ``|rho| > MIN_Z``, the
     reference patch lies inside ``[0, W-1] x [0, H-1]`` and its grey std is at least
@@ -323,20 +348,21 @@ def multiview_consistency(
         min_patch_std: least reference-patch grey std for a pair to count.
         max_fb_px: forward-backward reprojection error (training pixels) at which a pair
             becomes invalid.
+        ncc_gamma: grey scale of the adaptive support weights (0: plain NCC, PGSR's).
 
     Returns ``{"photo": sum of exp(-phi) cost over valid pairs / number of valid pairs,
     "geo": mean phi over valid pairs with the check (training pixels),
     "valid_fraction": valid pairs / (M * len(sources)) (detached)}``; a term with no pair
     is a zero that is connected to ``depth`` and ``normal`` (zero gradients).
     """
-    _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch)
+    _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma)
     M = len(pixels)
 
     # A zero that carries depth's and normal's graph with exactly zero gradients
     # (torch.where sends nothing to the branch it does not take).
     zero = (torch.where(torch.zeros_like(depth, dtype=torch.bool), depth, 0.0).sum()
             + torch.where(torch.zeros_like(normal, dtype=torch.bool), normal, 0.0).sum())
-    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std)
+    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
     Kt, pix = ref.Kt, ref.pix
 
     photo_sum, geo_sum = zero, zero
@@ -381,6 +407,7 @@ def best_source_ncc(
     patch: int = 7,
     min_patch_std: float = 0.01,
     occlusion_rel_tol: float = 0.01,
+    ncc_gamma: float = 0.0,
 ) -> torch.Tensor:
     """Per pixel, the best NCC over the sources of the reference patch warped through the
     pixel's rendered plane: the evidence :func:`multiview_consistency` optimises, as a
@@ -391,11 +418,12 @@ def best_source_ncc(
     source with ``depth_train`` is also no evidence where it does not see the point: its
     rendered depth at the point's projection (read as :func:`multiview_consistency` reads
     it) is smaller than the point's depth there by more than ``occlusion_rel_tol``
-    (relative), or it has none. Returns ``(M,)``: the largest NCC in [-1, 1] over the valid
+    (relative), or it has none. ``ncc_gamma`` as there (0: plain NCC). Returns ``(M,)``:
+    the largest NCC in [-1, 1] over the valid
     sources; ``nan`` where no source is valid or the reference patch is flatter than
     ``min_patch_std`` (no evidence either way)."""
-    _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch)
-    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std)
+    _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma)
+    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
     best = torch.full_like(ref.X[:, 2], float("nan"))
     for src in sources:
         _, _, pos, Xs, front, valid = _warp_into(ref, src, depth)

@@ -32,6 +32,9 @@ class LossConfig:
     mv_patch: int = 7  # NCC patch side, full-resolution pixels (odd)
     mv_min_patch_std: float = 0.01  # grey std below which a patch is flat: no NCC there
     mv_max_fb_px: float = 1.0  # forward-backward reprojection error (training pixels) above which a pair is occluded
+    # Adaptive support weights of L_mv's and the photo reset's NCC: patch pixels weighted by
+    # exp(-|grey - centre grey| / mv_ncc_gamma) (grey in [0, 1]). 0: plain NCC (PGSR).
+    mv_ncc_gamma: float = 0.0
     # L_smooth: edge-aware smoothness of the rendered normals (neighbouring surface pixels'
     # unit normals alike where the image is flat: weight exp(-smooth_gamma |grad I|)), from
     # start.mv. 0: off.
@@ -43,6 +46,8 @@ class LossConfig:
             raise ConfigError(f"loss.mv_patch must be odd and >= 3, got {self.mv_patch}")
         if min(self.lambda_smooth, self.smooth_gamma) < 0:
             raise ConfigError("loss.lambda_smooth and smooth_gamma must be >= 0")
+        if not self.mv_ncc_gamma >= 0 or self.mv_ncc_gamma == float("inf"):
+            raise ConfigError(f"loss.mv_ncc_gamma must be a finite number >= 0 (0: plain NCC), got {self.mv_ncc_gamma}")
         if min(self.lambda_mv, self.lambda_mvgeo, self.mv_min_patch_std) < 0 or self.mv_max_fb_px <= 0:
             raise ConfigError("loss.lambda_mv, lambda_mvgeo and mv_min_patch_std must be >= 0 and mv_max_fb_px > 0")
         if self.lambda_mvs < 0 or not 0.0 <= self.mvs_final:

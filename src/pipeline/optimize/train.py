@@ -298,7 +298,8 @@ class Trainer:
         K_full = torch.from_numpy(views.scene.K[i]).float()
         return multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
                                      views.grey_full[i], self._sources(i, self.last_depth), patch=lw.mv_patch,
-                                     min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px)
+                                     min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px,
+                                     ncc_gamma=lw.mv_ncc_gamma)
 
     def _sources(self, i: int, depths: dict[int, tuple[torch.Tensor, torch.Tensor]]) -> list[SourceView]:
         """The other input views as sources of view ``i`` (full-resolution grey images),
@@ -343,7 +344,8 @@ class Trainer:
             best = best_source_ncc(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K,
                                    torch.from_numpy(views.scene.K[i]).float(), views.grey_full[i],
                                    self._sources(i, depths), patch=lw.mv_patch,
-                                   min_patch_std=lw.mv_min_patch_std, occlusion_rel_tol=pr.depth_rel_tol)
+                                   min_patch_std=lw.mv_min_patch_std, occlusion_rel_tol=pr.depth_rel_tol,
+                                   ncc_gamma=lw.mv_ncc_gamma)
             marked = torch.zeros_like(surface)
             marked[ys, xs] = best < pr.ncc_min  # nan (no evidence) compares False
             reset |= visible_surfels_at(self.params.means, v.K, v.world_to_cam, out.depth_median, marked,
