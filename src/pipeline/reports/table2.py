@@ -32,7 +32,7 @@ LIMIT = "3-view limit (GT seen by the input views)"
 NOT_A_METHOD = (MVS_TSDF, LIMIT)  # rows without the method's components
 # The method's components (CSV column: Markdown header), in the table's column order.
 COMPONENTS = {"dense_init": "dense init", "gcf": "L_gcf", "nor": "L_nor", "mv": "L_mv", "photo_reset": "photo reset",
-              "smooth": "L_smooth"}
+              "smooth": "L_smooth", "ncc_support": "NCC support weights"}
 
 
 def seed_groups(run: list[str]) -> dict[str, list[str]]:
@@ -70,7 +70,8 @@ def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool |
     optimize = merged_section(OptimizeConfig, "optimize", params, variant.optimize if variant else {})
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
             "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
-            "photo_reset": optimize.photo_reset.enabled, "smooth": loss.lambda_smooth > 0}
+            "photo_reset": optimize.photo_reset.enabled, "smooth": loss.lambda_smooth > 0,
+            "ncc_support": loss.mv_ncc_gamma > 0}
 
 
 def _row(row: str, flags: dict, runs: list[dict[str, dict]], scenes: list[str]) -> dict:
