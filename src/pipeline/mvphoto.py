@@ -210,7 +210,7 @@ class _ReferencePatches:
 
 
 def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std,
-                       ncc_gamma: float = 0.0) -> _ReferencePatches:
+                       ncc_gamma) -> _ReferencePatches:
     h, w = depth.shape
     Kt, Kf = _as(K_train, depth), _as(K_full, depth)
     grey_ref = _as(grey_ref_full, depth).detach()
@@ -419,9 +419,8 @@ def best_source_ncc(
     rendered depth at the point's projection (read as :func:`multiview_consistency` reads
     it) is smaller than the point's depth there by more than ``occlusion_rel_tol``
     (relative), or it has none. ``ncc_gamma`` as there (0: plain NCC). Returns ``(M,)``:
-    the largest NCC in [-1, 1] over the valid
-    sources; ``nan`` where no source is valid or the reference patch is flatter than
-    ``min_patch_std`` (no evidence either way)."""
+    the largest NCC in [-1, 1] over the valid sources; ``nan`` where no source is valid or
+    the reference patch is flatter than ``min_patch_std`` (no evidence either way)."""
     _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma)
     ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
     best = torch.full_like(ref.X[:, 2], float("nan"))

@@ -1,6 +1,7 @@
 """The loss weights (conf/loss)."""
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from pipeline.errors import ConfigError
@@ -46,7 +47,7 @@ class LossConfig:
             raise ConfigError(f"loss.mv_patch must be odd and >= 3, got {self.mv_patch}")
         if min(self.lambda_smooth, self.smooth_gamma) < 0:
             raise ConfigError("loss.lambda_smooth and smooth_gamma must be >= 0")
-        if not self.mv_ncc_gamma >= 0 or self.mv_ncc_gamma == float("inf"):
+        if not (math.isfinite(self.mv_ncc_gamma) and self.mv_ncc_gamma >= 0):
             raise ConfigError(f"loss.mv_ncc_gamma must be a finite number >= 0 (0: plain NCC), got {self.mv_ncc_gamma}")
         if min(self.lambda_mv, self.lambda_mvgeo, self.mv_min_patch_std) < 0 or self.mv_max_fb_px <= 0:
             raise ConfigError("loss.lambda_mv, lambda_mvgeo and mv_min_patch_std must be >= 0 and mv_max_fb_px > 0")
