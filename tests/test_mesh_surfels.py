@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import torch
 
-from init_scene import distance_to_spheres
+from init_scene import distance_to_spheres, ray_cast, spheres_world
 from optimize_scene import tiny_config, tiny_problem
 from pipeline import geometry
 from pipeline.config.mesh import MeshConfig
 from pipeline.evaluation.heldout import heldout_scores, iou, masked_psnr, visual_hull_silhouettes
 from pipeline.meshing.raycast import MeshCaster
-from pipeline.meshing.surfels import mesh_from_surfels, virtual_world_to_cams
+from pipeline.meshing.surfels import merge_init_depth, mesh_from_surfels, virtual_world_to_cams
 from pipeline.meshing.tsdf import FusionError
 from pipeline.optimize import init_from_cloud, make_views, train
 
@@ -97,3 +97,53 @@ def test_heldout_scores_the_mesh_silhouette(trained):
     half = mesh.triangles[mesh.vertices_mm[mesh.triangles[:, 0], 0] < np.median(mesh.vertices_mm[:, 0])]
     r_half = heldout_scores(params, scene, scene, mesh=MeshCaster(mesh.vertices_mm, half))
     assert r_half["mesh_iou_mean"] < r["mesh_iou_mean"] - 0.2
+
+
+def test_merge_init_depth_matches_a_loop():
+    rng = np.random.default_rng(0)
+    rendered = rng.uniform(500.0, 600.0, (2, 7, 9))
+    rendered[rng.uniform(size=rendered.shape) < 0.2] = 0.0
+    init = rendered * (1.0 + rng.uniform(-0.01, 0.01, rendered.shape)) + (rendered == 0) * 550.0
+    init[rng.uniform(size=init.shape) < 0.3] = 0.0
+    merged, n = merge_init_depth(rendered, init, 0.005)
+    want, count = rendered.copy(), 0
+    for idx in np.ndindex(rendered.shape):
+        r, m = rendered[idx], init[idx]
+        if r > 0 and m > 0 and abs(m - r) < 0.005 * m:
+            want[idx] = m
+            count += 1
+    assert np.array_equal(merged, want) and n == count and 0 < n < rendered.size
+    assert np.array_equal(merge_init_depth(rendered, init, 0.0)[0], rendered)
+    with pytest.raises(ValueError, match="shape"):
+        merge_init_depth(rendered, init[:1], 0.01)
+
+
+def test_mesh_takes_the_init_depth_where_it_agrees(trained):
+    """Exact depth as the init's: merged where the surfels' depth agrees, so the mesh moves
+    towards the true surface; depth 10% off agrees nowhere and changes nothing."""
+    scene, params = trained
+    truth = np.stack([ray_cast(K, T, scene.height, scene.width, spheres_world(scene))[0]
+                      for K, T in zip(scene.K, scene.world_to_cam)])
+    cfg = MeshConfig(voxel_norm=0.01, trunc_norm=0.04)
+    plain, info0 = mesh_from_surfels(params, scene, cfg)
+    on = replace(cfg, init_depth_rel_tol=0.01)
+    merged, info = mesh_from_surfels(params, scene, on, init_depths_mm=truth)
+    assert info0["depth_pixels_from_init"] == 0
+    assert info["depth_pixels_from_init"] > 0.5 * info["depth_pixels"], info
+    d_plain = distance_to_spheres(plain.vertices_mm, scene).mean()
+    d_merged = distance_to_spheres(merged.vertices_mm, scene).mean()
+    assert d_merged < 0.8 * d_plain, (d_merged, d_plain)
+    far, info_far = mesh_from_surfels(params, scene, on, init_depths_mm=truth * 1.1)
+    assert info_far["depth_pixels_from_init"] == 0 and np.array_equal(far.vertices_mm, plain.vertices_mm)
+    with pytest.raises(ValueError, match="init's depth maps"):
+        mesh_from_surfels(params, scene, on)
+
+
+def test_mesh_stage_without_the_init_folder_is_refused_before_any_work(tmp_path):
+    from pipeline.errors import ConfigError
+    from pipeline.runs.mesh import mesh_surfels_dir
+
+    out = tmp_path / "mesh"
+    with pytest.raises(ConfigError, match="--init-dir"):
+        mesh_surfels_dir(tmp_path / "scene", tmp_path / "surfels", out, MeshConfig(init_depth_rel_tol=0.002))
+    assert not out.exists()

@@ -23,6 +23,9 @@ class MeshConfig:
     alpha_min: float = 0.5  # pixels with less accumulated alpha have no depth
     masks: bool = True  # zero the depth outside the input views' masks (where the scene has masks)
     virtual_per_pair: int = 0  # virtual views rendered between each pair of input views
+    # Where the init's MVS depth map (two-view confirmed) agrees with the rendered depth to
+    # this relative tolerance, that pixel fuses the init's depth instead; 0: off.
+    init_depth_rel_tol: float = 0.0
     # Bounding region for depth fused without masks (meshing/region.py): the unit sphere and,
     # when the depth shows one, the half-space above the support plane (the table).
     region: str = "auto"  # auto (when no mask cuts the fused depth) | on | off
@@ -36,6 +39,8 @@ class MeshConfig:
             raise ConfigError("mesh: region_plane_share must be in (0, 1] and region_plane_margin_norm >= 0")
         if self.depth not in ("median", "expected"):
             raise ConfigError(f"mesh.depth must be median or expected, got {self.depth!r}")
+        if not 0 <= self.init_depth_rel_tol < 1:
+            raise ConfigError(f"mesh.init_depth_rel_tol must be in [0, 1), got {self.init_depth_rel_tol}")
         if not 0 <= self.alpha_min < 1 or self.virtual_per_pair < 0:
             raise ConfigError("mesh: alpha_min must be in [0, 1) and virtual_per_pair >= 0")
         if not 0 < self.voxel_norm < self.trunc_norm:

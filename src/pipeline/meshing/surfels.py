@@ -89,11 +89,34 @@ def input_view_depths_mm(params: SurfelParams, scene: Scene, cfg: MeshConfig,
     return depths, colours, masks
 
 
-def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backend: str = "cpu") -> tuple[tsdf.Mesh, dict]:
+def merge_init_depth(rendered_mm: np.ndarray, init_mm: np.ndarray, rel_tol: float) -> tuple[np.ndarray, int]:
+    """``rendered_mm`` with each pixel where ``init_mm`` has a depth within ``rel_tol`` of it
+    (``|init - rendered| < rel_tol x init``; 0 = no depth in either) taken from ``init_mm``.
+    Why: where the init's two-view-confirmed MVS depth and the trained surfels agree, the
+    MVS depth (matched at full resolution) is the more accurate of the two; where they
+    disagree or the init has none, the surfels' depth stands. Returns the merged maps and
+    how many pixels came from ``init_mm``."""
+    if rendered_mm.shape != init_mm.shape:
+        raise ValueError(f"merge_init_depth: rendered {rendered_mm.shape} and init {init_mm.shape} depth maps differ in shape")
+    both = (rendered_mm > 0) & (init_mm > 0)
+    agree = both & (np.abs(init_mm - rendered_mm) < rel_tol * np.where(both, init_mm, 1.0))
+    return np.where(agree, init_mm, rendered_mm), int(agree.sum())
+
+
+def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backend: str = "cpu",
+                      init_depths_mm: np.ndarray | None = None) -> tuple[tsdf.Mesh, dict]:
     """Cleaned TSDF mesh (world mm) of surfels rendered at every input view (masked when
     ``cfg.masks`` and the scene has masks) and ``cfg.virtual_per_pair`` virtual views between
-    each pair of input views (unmasked: no mask exists there). Returns the mesh and facts."""
+    each pair of input views (unmasked: no mask exists there). With ``cfg.init_depth_rel_tol``
+    the input views' depth is merged with ``init_depths_mm`` (``(N, H, W)`` camera z, mm, 0 =
+    none: the init stage's MVS depth maps) first (:func:`merge_init_depth`). Returns the mesh
+    and facts."""
     d_in, c_in, masks = input_view_depths_mm(params, scene, cfg, backend)
+    from_init = 0
+    if cfg.init_depth_rel_tol > 0:
+        if init_depths_mm is None:
+            raise ValueError("mesh_from_surfels: mesh.init_depth_rel_tol > 0 needs the init's depth maps")
+        d_in, from_init = merge_init_depth(d_in, init_depths_mm, cfg.init_depth_rel_tol)
     Ts, Ks, ds, cs = [scene.world_to_cam], [scene.K], [d_in], [c_in]
     if cfg.virtual_per_pair > 0:
         T_v = virtual_world_to_cams(scene.world_to_cam, scene.norm_to_world[:3, 3], cfg.virtual_per_pair)
@@ -110,6 +133,6 @@ def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backe
         raise tsdf.FusionError(f"{scene.source}: the surfels' rendered depth fuses into an empty mesh; nothing written")
     voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
     info = {"views_input": scene.num_views, "views_virtual": len(Ts) - scene.num_views, "depth": cfg.depth,
-            "depth_pixels": int((fused > 0).sum()), "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
+            "depth_pixels": int((fused > 0).sum()), "depth_pixels_from_init": from_init, "voxel_mm": voxel, "trunc_mm": trunc, "masks": masks is not None,
             **facts, "vertices": len(mesh.vertices_mm)}
     return mesh, info

@@ -21,6 +21,7 @@ from pathlib import Path
 
 from pipeline.config.ablation import SEED_REPLICATE, VariantConfig
 from pipeline.config.loss import LossConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import merged_section
 from pipeline.evaluation.record import Chamfer
@@ -32,7 +33,7 @@ LIMIT = "3-view limit (GT seen by the input views)"
 NOT_A_METHOD = (MVS_TSDF, LIMIT)  # rows without the method's components
 # The method's components (CSV column: Markdown header), in the table's column order.
 COMPONENTS = {"dense_init": "dense init", "gcf": "L_gcf", "nor": "L_nor", "mv": "L_mv", "photo_reset": "photo reset",
-              "smooth": "L_smooth", "ncc_support": "NCC support weights"}
+              "ncc_support": "NCC support weights", "init_depth_mesh": "init depth in the mesh"}
 
 
 def seed_groups(run: list[str]) -> dict[str, list[str]]:
@@ -68,10 +69,11 @@ def _finite(x) -> float:
 def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool | None]:
     loss = merged_section(LossConfig, "loss", params, variant.loss if variant else {})
     optimize = merged_section(OptimizeConfig, "optimize", params, variant.optimize if variant else {})
+    mesh = merged_section(MeshConfig, "mesh", params, variant.mesh if variant else {})
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
             "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
-            "photo_reset": optimize.photo_reset.enabled, "smooth": loss.lambda_smooth > 0,
-            "ncc_support": loss.mv_ncc_gamma > 0}
+            "photo_reset": optimize.photo_reset.enabled, "ncc_support": loss.mv_ncc_gamma > 0,
+            "init_depth_mesh": mesh.init_depth_rel_tol > 0}
 
 
 def _row(row: str, flags: dict, runs: list[dict[str, dict]], scenes: list[str]) -> dict:

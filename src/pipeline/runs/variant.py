@@ -52,7 +52,7 @@ def run_variant(name: str, variant: str, params: dict, scene_dir: str | Path, sr
     atomic.write_text(timing_path, json.dumps(timing_report(result, usage.as_dict(), opt.preset), indent=2) + "\n")
 
     backend = resolve_backend(opt.backend)
-    mesh_surfels_dir(scene_dir, surfels_dir, mesh_dir, mesh_cfg, backend)
+    mesh_surfels_dir(scene_dir, surfels_dir, mesh_dir, mesh_cfg, backend, init_dirs[v.init])
 
     metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, timing_path,
                             section(EvaluateConfig, "evaluate", params), opt, mesh_cfg, input_views, backend)
