@@ -222,9 +222,21 @@ def test_nan_in_a_surfel_file_is_named(tmp_path, capsys, scene_dir):
     (tmp_path / "surfels").mkdir()
     write_surfel_ply(tmp_path / "surfels" / "surfels.ply", params, np.diag([100.0, 100.0, 100.0, 1.0]))
     rc, err = _gcgs(capsys, "mesh", "--scene", scene_dir, "--surfels-dir", tmp_path / "surfels", "--out-dir",
-                    tmp_path / "mesh", "--params", PARAMS)
+                    tmp_path / "mesh", "--init-dir", tmp_path / "init", "--params", PARAMS)
     line = _one_error_line(err, "mesh")
     assert rc == 1 and "surfels.ply: 1 surfel(s) hold NaN" in line and "surfel 3" in line
+    assert not (tmp_path / "mesh").exists()
+    # Good surfels, but an init folder without depth maps, or none: one line each, no mesh.
+    with torch.no_grad():
+        params.means[3, 1] = 0.0
+    write_surfel_ply(tmp_path / "surfels" / "surfels.ply", params, np.diag([100.0, 100.0, 100.0, 1.0]))
+    rc, err = _gcgs(capsys, "mesh", "--scene", scene_dir, "--surfels-dir", tmp_path / "surfels", "--out-dir",
+                    tmp_path / "mesh", "--init-dir", tmp_path / "init", "--params", PARAMS)
+    line = _one_error_line(err, "mesh")
+    assert rc == 1 and "missing depth map" in line and str(tmp_path / "init") in line
+    rc, err = _gcgs(capsys, "mesh", "--scene", scene_dir, "--surfels-dir", tmp_path / "surfels", "--out-dir",
+                    tmp_path / "mesh", "--params", PARAMS)
+    assert rc == 1 and "--init-dir" in _one_error_line(err, "mesh")
     assert not (tmp_path / "mesh").exists()
 
 

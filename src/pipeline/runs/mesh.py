@@ -31,11 +31,11 @@ def mesh_surfels_dir(scene_dir: str | Path, surfels_dir: str | Path, out_dir: st
     with atomic.atomic_dir(Path(out_dir), "mesh", inputs=inputs) as tmp:
         scene = load_scene(scene_dir, view_ids=None)
         check_made_from(scene, surfels_dir, "train.json", "optimize")
+        surfels = read_surfel_ply(Path(surfels_dir) / "surfels.ply", scene.norm_to_world)
         init_depths = None
         if cfg.init_depth_rel_tol > 0:
             maps = load_init_depths(init_dir, scene, needed_by="mesh.init_depth_rel_tol")
             init_depths = np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps])
-        surfels = read_surfel_ply(Path(surfels_dir) / "surfels.ply", scene.norm_to_world)
         mesh, info = mesh_from_surfels(surfels, scene, cfg, backend, init_depths)
         tsdf.write_mesh(tmp / "mesh.ply", mesh)
         (tmp / "mesh.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
