@@ -202,3 +202,104 @@ def test_photo_reset_makes_a_surface_placed_in_front_transparent_and_keeps_the_t
     assert reset[n_true:].mean() > 0.6  # 0.86 when written
     assert reset[:n_true].mean() < 0.02  # 0 when written
     assert np.allclose(opacity[~reset], 0.9, atol=1e-5)
+
+
+# -- training on crops ---------------------------------------------------------------------
+def test_a_crop_renders_exactly_its_window_of_the_whole_view(problem):
+    from pipeline.config.optimize import CropConfig
+    from pipeline.optimize.views import crop_view, crop_window
+    from pipeline.rasterizer import rasterize
+
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config()
+    params = init_from_cloud(cloud, scene, cfg)
+    views = make_views(scene, priors, cfg, loss)
+    full = views.at(0, 1)
+    whole = rasterize(params.surfels(0), full.camera, "cpu")
+    window = (13, 7, 29, 21)  # not tile-aligned, touching no border
+    part = crop_view(full, *window)
+    x0, y0, w, h = window
+    cut = rasterize(params.surfels(0), part.camera, "cpu")
+    for name in ("features", "alpha", "depth_median", "depth_expected", "normal_cam"):
+        torch.testing.assert_close(getattr(cut, name), getattr(whole, name)[y0:y0 + h, x0:x0 + w], msg=name,
+                                   rtol=1e-5, atol=1e-6)
+    assert torch.equal(part.image, full.image[:, y0:y0 + h, x0:x0 + w])
+    assert torch.equal(part.mask, full.mask[y0:y0 + h, x0:x0 + w])
+    # The window lies inside the view and, with a mask, is centred on a mask pixel where it can be.
+    g = torch.Generator().manual_seed(0)
+    for _ in range(20):
+        x0, y0, w, h = crop_window(full.size, 0.5, full.mask, g)
+        assert 0 <= x0 <= full.size[1] - w and 0 <= y0 <= full.size[0] - h
+        assert (w, h) == (round(0.5 * full.size[1]), round(0.5 * full.size[0]))
+        assert bool(full.mask[y0:y0 + h, x0:x0 + w].any())
+    with pytest.raises(ValueError, match="not inside"):
+        crop_view(full, 40, 0, 30, 10)
+    assert [CropConfig(0.5, 4).active_at(i) for i in range(5)] == [False, True, True, True, False]
+    assert not CropConfig(1.0, 0).active_at(3) and not CropConfig(0.0, 0).active_at(3)
+    with pytest.raises(ConfigError, match="optimize.crop.fraction"):
+        CropConfig(1.5, 0)
+
+
+def test_training_on_crops_runs_every_term_and_lowers_the_photometric_error(problem):
+    from pipeline.config.optimize import CropConfig
+
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=24, surface_alpha=0.05, lambda_gcf=0.0, lambda_mv=0.1, lambda_mvgeo=0.05)
+    cfg = replace(cfg, densify=replace(cfg.densify, reset_every=0), crop=CropConfig(0.5, 3),
+                  start=replace(cfg.start, mv=2))
+    res = _run(scene, cloud, priors, cfg, loss)
+    _finite(res)
+    sizes = {(r["width"], r["height"]) for r in res.history}
+    assert sizes == {(scene.width, scene.height), (round(scene.width / 2), round(scene.height / 2))}
+    assert any(r.get("mv_valid", 0) > 0 for r in res.history if r["width"] < scene.width)
+    first = np.mean([r["l1"] for r in res.history[:3]])
+    last = np.mean([r["l1"] for r in res.history[-3:]])
+    assert last < first
+    # L_gcf's feature maps are not cut: asking for both is a config error, before any work.
+    cfg_gcf, loss_gcf = tiny_config(iterations=2, lambda_gcf=1.0)
+    with pytest.raises(ConfigError, match="lambda_gcf"):
+        _run(scene, cloud, priors, replace(cfg_gcf, crop=CropConfig(0.5, 0)), loss_gcf)
+
+
+def test_a_crop_keeps_the_rest_of_the_remembered_source_depth(problem):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config()
+    params = init_from_cloud(cloud, scene, cfg)
+    views = make_views(scene, priors, cfg, loss)
+    trainer = Trainer(params, views, cfg, loss)
+    full = views.at(0, 1)
+    H, W = full.size
+    trainer._remember_depth(0, full, None, torch.full((H, W), 2.0))
+    trainer._remember_depth(0, full, (5, 4, 10, 6), torch.full((6, 10), 3.0))
+    d, K = trainer.last_depth[0]
+    assert torch.equal(K, full.K) and d.shape == (H, W)
+    assert float(d[4:10, 5:15].min()) == 3.0 == float(d[4:10, 5:15].max())
+    assert float(d.sum()) == 2.0 * H * W + 60.0
+    # A crop of a view not rendered before: no depth outside the window.
+    trainer._remember_depth(1, views.at(1, 1), (0, 0, 3, 2), torch.ones((2, 3)))
+    assert float(trainer.last_depth[1][0].sum()) == 6.0
+
+
+def test_a_crop_weights_the_densification_statistic_by_its_share_of_the_view(problem, monkeypatch):
+    import sys
+
+    from pipeline.config.optimize import CropConfig
+
+    train_module = sys.modules["pipeline.optimize.train"]  # the package exports the function train
+
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(lambda_gcf=0.0)
+    cfg = replace(cfg, crop=CropConfig(0.5, 0))
+    rendered = []
+    real = train_module.rasterize
+    monkeypatch.setattr(train_module, "rasterize", lambda *a, **k: rendered.append(real(*a, **k)) or rendered[-1])
+    trainer = Trainer(init_from_cloud(cloud, scene, cfg), make_views(scene, priors, cfg, loss), cfg, loss)
+    calls = []
+    trainer.strategy.step_post_backward = lambda params, g, radii, w, h: calls.append((g.clone(), w, h))
+    trainer.step()
+    (g, w, h), = calls
+    H, W = scene.height, scene.width
+    assert (w, h) == (W, H)  # screen units of the whole view
+    share = round(0.5 * W) * round(0.5 * H) / (W * H)
+    assert rendered[-1].means2d.grad.abs().sum() > 0
+    torch.testing.assert_close(g, rendered[-1].means2d.grad * share)

@@ -89,6 +89,28 @@ class PhotoResetConfig:
 
 
 @dataclass
+class CropConfig:
+    """Training on part of each view (docs/optimize.md "Training on crops"): an iteration
+    renders and back-propagates a window of ``fraction`` x the view's width and height
+    (whole pixels), centred on a random mask pixel (a random pixel without masks) and moved
+    inside the image; every ``full_every``-th iteration renders the whole view (0: never).
+    ``fraction`` 0 or 1: the whole view every iteration."""
+
+    fraction: float = 0.0
+    full_every: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.fraction <= 1:
+            raise ConfigError(f"optimize.crop.fraction must be in [0, 1], got {self.fraction}")
+        if self.full_every < 0:
+            raise ConfigError(f"optimize.crop.full_every must be >= 0, got {self.full_every}")
+
+    def active_at(self, it: int) -> bool:
+        """Whether iteration ``it`` renders a crop."""
+        return 0 < self.fraction < 1 and not (self.full_every > 0 and it % self.full_every == 0)
+
+
+@dataclass
 class TermStarts:
     """Iteration from which each loss term is on (0: from the start)."""
 
@@ -129,12 +151,13 @@ class OptimizeConfig:
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     start: TermStarts = field(default_factory=TermStarts)
     photo_reset: PhotoResetConfig = field(default_factory=PhotoResetConfig)
+    crop: CropConfig = field(default_factory=CropConfig)
 
     BACKENDS = ("auto", "cpu", "cuda", "reference")
 
     def __post_init__(self) -> None:
         nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts,
-                        photo_reset=PhotoResetConfig)
+                        photo_reset=PhotoResetConfig, crop=CropConfig)
         if self.backend not in self.BACKENDS:
             raise ConfigError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.masks not in ("auto", "on", "off"):

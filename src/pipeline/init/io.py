@@ -196,6 +196,12 @@ def load_init_depths(init_dir: str | Path, scene: Scene, needed_by: str) -> list
     return out
 
 
+def stacked_depths_mm(maps: list[DepthMap]) -> np.ndarray:
+    """``(N, H, W)`` camera z in mm of ``maps``, 0 where a map has no valid depth (what TSDF
+    fusion and the mesh's init-depth merge read)."""
+    return np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps])
+
+
 @dataclass
 class InitResult:
     """What a backend produces: the cloud, per-view depth maps (depth backends) and

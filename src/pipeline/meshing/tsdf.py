@@ -17,7 +17,7 @@ from pipeline import geometry, ply
 from pipeline.config.mesh import MeshConfig
 from pipeline.data.dtu import load_scene
 from pipeline.errors import InputError
-from pipeline.init.io import load_init_depths
+from pipeline.init.io import load_init_depths, stacked_depths_mm
 from pipeline.meshing import region as bounding
 
 # Cleaning that drops more than this fraction of the fused triangles gets a warning: a
@@ -199,8 +199,7 @@ def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, cfg: MeshConfig)
     against the scene, colours from its images) and clean the mesh (world mm). Returns
     the mesh and facts: sizes, views, triangles fused and kept."""
     scene = load_scene(scene_dir, view_ids=None)
-    maps = load_init_depths(init_dir, scene, needed_by="TSDF fusion")
-    depths = np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps])
+    depths = stacked_depths_mm(load_init_depths(init_dir, scene, needed_by="TSDF fusion"))
     mesh, _, facts = fuse_in_region(depths, scene.K, scene.world_to_cam, scene.images, scene.norm_to_world, cfg,
                                     masked=scene.masks is not None)
     if len(mesh.triangles) == 0:

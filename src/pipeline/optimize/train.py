@@ -33,14 +33,14 @@ import torch.nn.functional as F
 from pipeline import atomic
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
-from pipeline.errors import Interrupted
+from pipeline.errors import ConfigError, Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
 from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency
 from pipeline.optimize import ops, terms
 from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
 from pipeline.optimize.surfels import SurfelParams
-from pipeline.optimize.views import TrainViews
+from pipeline.optimize.views import TrainViews, ViewData, crop_view, crop_window
 from pipeline.rasterizer import rasterize, resolve_backend
 
 MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
@@ -95,6 +95,9 @@ class Trainer:
 
     def __init__(self, params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: LossConfig,
                  backend: str = "cpu"):
+        if 0 < cfg.crop.fraction < 1 and loss.lambda_gcf > 0:
+            raise ConfigError("optimize.crop.fraction < 1 needs loss.lambda_gcf 0: L_gcf's feature maps are not cut "
+                              "to the crop")
         self.cfg, self.loss, self.views = cfg, loss, views
         self.backend = backend
         self.params = params
@@ -174,12 +177,14 @@ class Trainer:
             if group["name"] == "means":
                 group["lr"] = _means_lr(cfg, it)
         i = self._next_view()
-        v = self.views.at(i, cfg.downscale_at(it))
+        full = self.views.at(i, cfg.downscale_at(it))
+        window = crop_window(full.size, cfg.crop.fraction, full.mask, self.generator) if cfg.crop.active_at(it) else None
+        v = full if window is None else crop_view(full, *window)
         h, w = v.size
         degree = min(cfg.sh_degree, it // cfg.sh_every)
         out = rasterize(self.params.surfels(degree), v.camera, self.backend)
         if self.loss.lambda_mv > 0 or self.loss.lambda_mvgeo > 0:
-            self.last_depth[i] = (out.depth_median.detach() * (out.alpha.detach() > cfg.surface_alpha), v.K)
+            self._remember_depth(i, full, window, out.depth_median.detach() * (out.alpha.detach() > cfg.surface_alpha))
         rgb = out.features.permute(2, 0, 1) + cfg.background * (1.0 - out.alpha)
         target = v.image
         if v.mask is not None:
@@ -190,7 +195,7 @@ class Trainer:
 
         values: dict[str, torch.Tensor] = {}
         total = torch.zeros((), dtype=rgb.dtype)
-        for name, value, weight in self.loss_terms(it, i, v, out, rgb, target):
+        for name, value, weight in self.loss_terms(it, i, v, out, rgb, target, full, window):
             if weight is None:  # logged only
                 values[name] = value.detach()
                 continue
@@ -213,7 +218,13 @@ class Trainer:
             for p in self.params.tensors().values():
                 if p.grad is not None:
                     p.grad[bad] = 0.0
-        self.strategy.step_post_backward(self.params, out.means2d.grad, out.radii, w, h)
+        # The densification statistic as the whole view would give it: screen units of the whole
+        # view, and the crop's mean losses weighted by its share of the view's pixels (the part
+        # of the whole view's mean loss its pixels make), or a crop densifies 1/share too much.
+        grad2d = out.means2d.grad
+        if window is not None and grad2d is not None:
+            grad2d = grad2d * (w * h / (full.size[0] * full.size[1]))
+        self.strategy.step_post_backward(self.params, grad2d, out.radii, full.size[1], full.size[0])
         self.optimizer.step()
         self.optimizer.zero_grad(set_to_none=True)
         bad |= self._degenerate()
@@ -236,11 +247,14 @@ class Trainer:
         row.update({k: int(x) for k, x in changes.items()})
         return row
 
-    def loss_terms(self, it: int, i: int, v, out, rgb: torch.Tensor,
-                   target: torch.Tensor) -> Iterator[tuple[str, torch.Tensor, float | None]]:
+    def loss_terms(self, it: int, i: int, v, out, rgb: torch.Tensor, target: torch.Tensor,
+                   full: ViewData | None = None,
+                   window: tuple[int, int, int, int] | None = None) -> Iterator[tuple[str, torch.Tensor, float | None]]:
         """The named, weighted loss terms of iteration ``it`` on view ``i`` (render ``out``,
         composited ``rgb``, ``target`` image), in a fixed order, each computed when asked for
-        (so the caller times each); a weight of ``None`` is a figure logged, not optimised."""
+        (so the caller times each); a weight of ``None`` is a figure logged, not optimised.
+        ``v`` is the window ``window`` ``(x0, y0, w, h)`` of the whole view ``full`` when
+        training on a crop (else both ``None``)."""
         cfg, lw = self.cfg, self.loss
         photo, l1 = terms.photometric_loss(rgb, target, lw.lambda_dssim)
         yield "photo", photo, 1.0
@@ -264,7 +278,10 @@ class Trainer:
                                   ref_image_size=v.feature_image_size,
                                   max_dissimilarity=lw.gcf_max_dissimilarity), lw.lambda_gcf
         if (lw.lambda_mv > 0 or lw.lambda_mvgeo > 0) and it >= cfg.start.mv:
-            mv = self._multiview(i, v, out, surface)
+            maps = (out.depth_median, out.normal_cam, surface)
+            if window is not None:  # L_mv works in the whole view's pixels
+                maps = tuple(_uncrop(x, window, full.size) for x in maps)
+            mv = self._multiview(i, (v if window is None else full).K, *maps)
             yield "mv", mv["photo"], lw.lambda_mv
             yield "mvgeo", mv["geo"], lw.lambda_mvgeo
             yield "mv_valid", mv["valid_fraction"], None
@@ -287,19 +304,36 @@ class Trainer:
         if lw.lambda_mask > 0 and v.mask is not None:
             yield "mask", terms.mask_loss(out.alpha, v.mask), lw.lambda_mask
 
-    def _multiview(self, i: int, v, out, surface: torch.Tensor) -> dict[str, torch.Tensor]:
-        """L_mv's photometric and geometric parts on a seeded random subset of the surface
-        pixels of view ``i``, the other input views as sources (:mod:`pipeline.mvphoto`)."""
+    def _multiview(self, i: int, K_train: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
+                   surface: torch.Tensor) -> dict[str, torch.Tensor]:
+        """L_mv's photometric and geometric parts on a seeded random subset of the ``surface``
+        pixels of view ``i`` (rendered ``depth``, ``normal`` at intrinsics ``K_train``), the
+        other input views as sources (:mod:`pipeline.mvphoto`)."""
         cfg, lw, views = self.cfg, self.loss, self.views
         ys, xs = torch.nonzero(surface, as_tuple=True)
         if 0 < cfg.mv_max_points < len(xs):
             pick = torch.randperm(len(xs), generator=self.generator)[: cfg.mv_max_points]
             ys, xs = ys[pick], xs[pick]
         K_full = torch.from_numpy(views.scene.K[i]).float()
-        return multiview_consistency(out.depth_median, out.normal_cam, torch.stack([xs, ys], 1), v.K, K_full,
+        return multiview_consistency(depth, normal, torch.stack([xs, ys], 1), K_train, K_full,
                                      views.grey_full[i], self._sources(i, self.last_depth), patch=lw.mv_patch,
                                      min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px,
                                      ncc_gamma=lw.mv_ncc_gamma)
+
+    def _remember_depth(self, i: int, full: ViewData, window: tuple[int, int, int, int] | None,
+                        depth: torch.Tensor) -> None:
+        """Keep view ``i``'s rendered surface depth (detached) for L_mv's forward-backward check
+        of later iterations: the whole map, or a crop's window written into the last one
+        (outside it the depth stays from when it was last rendered, or none)."""
+        if window is None:
+            self.last_depth[i] = (depth, full.K)
+            return
+        x0, y0, w, h = window
+        prev = self.last_depth.get(i)
+        whole = prev[0].clone() if prev is not None and tuple(prev[0].shape) == full.size else \
+            torch.zeros(full.size, dtype=depth.dtype)
+        whole[y0:y0 + h, x0:x0 + w] = depth
+        self.last_depth[i] = (whole, full.K)
 
     def _sources(self, i: int, depths: dict[int, tuple[torch.Tensor, torch.Tensor]]) -> list[SourceView]:
         """The other input views as sources of view ``i`` (full-resolution grey images),
@@ -377,6 +411,21 @@ class Trainer:
         ops.select(self.params, self.optimizer, keep)
         self.strategy.state.select(keep)
         self.removed_degenerate += int(bad.sum())
+
+
+def _uncrop(x: torch.Tensor, window: tuple[int, int, int, int], size: tuple[int, int]) -> torch.Tensor:
+    """A crop's ``(h, w)`` or ``(h, w, C)`` map placed at ``window`` ``(x0, y0, w, h)`` in a
+    zero (False) map of the whole view's ``size`` ``(H, W)``; differentiable."""
+    x0, y0, w, h = window
+    H, W = size
+    if x.dtype == torch.bool:
+        whole = torch.zeros((H, W) + tuple(x.shape[2:]), dtype=torch.bool)
+        whole[y0:y0 + h, x0:x0 + w] = x
+        return whole
+    pad = (x0, W - x0 - w, y0, H - y0 - h)
+    if x.dim() == 3:
+        return F.pad(x.permute(2, 0, 1), pad).permute(1, 2, 0)
+    return F.pad(x, pad)
 
 
 def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: LossConfig,

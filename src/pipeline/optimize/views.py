@@ -2,7 +2,7 @@
 view, at each training resolution of the schedule (built once, on first use)."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -55,6 +55,51 @@ def _depth_at(depth: np.ndarray, w: int, h: int) -> np.ndarray:
     spread = np.sqrt(np.maximum(_area(depth * depth, w, h) - mean * mean, 0.0))
     ok = (_area(valid, w, h) > 1 - 1e-6) & (spread < MAX_REL_DEPTH_SPREAD * np.maximum(mean, 1e-12))
     return np.where(ok, mean, 0.0)
+
+
+def crop_window(size: tuple[int, int], fraction: float, mask: torch.Tensor | None,
+                generator: torch.Generator) -> tuple[int, int, int, int]:
+    """A training window ``(x0, y0, w, h)`` (whole pixels) of ``fraction`` x the sides of a
+    view of ``size`` ``(h, w)``: centred on a random mask pixel (on a random pixel without a
+    mask, or with an empty one), then moved inside the image."""
+    H, W = size
+    w, h = max(1, round(fraction * W)), max(1, round(fraction * H))
+    if mask is not None and bool(mask.any()):
+        ys, xs = torch.nonzero(mask, as_tuple=True)
+        k = int(torch.randint(len(xs), (1,), generator=generator))
+        cx, cy = int(xs[k]), int(ys[k])
+    else:
+        cx, cy = int(torch.randint(W, (1,), generator=generator)), int(torch.randint(H, (1,), generator=generator))
+    x0 = min(max(cx - w // 2, 0), W - w)
+    y0 = min(max(cy - h // 2, 0), H - h)
+    return x0, y0, w, h
+
+
+def crop_view(v: ViewData, x0: int, y0: int, w: int, h: int) -> ViewData:
+    """``v`` cut to the window ``[x0, x0 + w) x [y0, y0 + h)``: images, mask and priors
+    sliced, the principal point moved by ``(x0, y0)`` (pixel ``(x0, y0)`` becomes ``(0, 0)``,
+    integer pixel centres), so rendering the crop gives exactly that window of the whole
+    view's render. Features (L_gcf) are not cut: a cropped view has none."""
+    H, W = v.size
+    if not (0 <= x0 and 0 <= y0 and w >= 1 and h >= 1 and x0 + w <= W and y0 + h <= H):
+        raise ValueError(f"crop_view: window x0={x0}, y0={y0}, {w}x{h} is not inside the {W}x{H} view")
+    cam = v.camera
+    K = cam.K.clone()  # float64: the shift is exact
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    ys, xs = slice(y0, y0 + h), slice(x0, x0 + w)
+    return replace(
+        v,
+        image=v.image[:, ys, xs],
+        mask=None if v.mask is None else v.mask[ys, xs],
+        K=K.float(),
+        camera=Camera(K, cam.world_to_cam, w, h, near=cam.near, far=cam.far),
+        normal_prior=None if v.normal_prior is None else v.normal_prior[:, ys, xs],
+        normal_valid=None if v.normal_valid is None else v.normal_valid[ys, xs],
+        features=None,
+        feature_image_size=None,
+        mvs_depth=None if v.mvs_depth is None else v.mvs_depth[ys, xs],
+    )
 
 
 class TrainViews:

@@ -5,14 +5,13 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import numpy as np
 
 from pipeline import atomic
 from pipeline.config.mesh import MeshConfig
 from pipeline.data.dtu import load_scene
 from pipeline.data.scene import check_made_from
 from pipeline.errors import ConfigError
-from pipeline.init.io import load_init_depths
+from pipeline.init.io import load_init_depths, stacked_depths_mm
 from pipeline.meshing import tsdf
 from pipeline.meshing.surfels import mesh_from_surfels
 from pipeline.optimize.surfels import read_surfel_ply
@@ -34,8 +33,7 @@ def mesh_surfels_dir(scene_dir: str | Path, surfels_dir: str | Path, out_dir: st
         surfels = read_surfel_ply(Path(surfels_dir) / "surfels.ply", scene.norm_to_world)
         init_depths = None
         if cfg.init_depth_rel_tol > 0:
-            maps = load_init_depths(init_dir, scene, needed_by="mesh.init_depth_rel_tol")
-            init_depths = np.stack([np.where(m.valid, m.depth_mm, 0.0) for m in maps])
+            init_depths = stacked_depths_mm(load_init_depths(init_dir, scene, needed_by="mesh.init_depth_rel_tol"))
         mesh, info = mesh_from_surfels(surfels, scene, cfg, backend, init_depths)
         tsdf.write_mesh(tmp / "mesh.ply", mesh)
         (tmp / "mesh.json").write_text(json.dumps(info, indent=2, sort_keys=True) + "\n")
