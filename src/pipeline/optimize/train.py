@@ -247,14 +247,13 @@ class Trainer:
         row.update({k: int(x) for k, x in changes.items()})
         return row
 
-    def loss_terms(self, it: int, i: int, v, out, rgb: torch.Tensor, target: torch.Tensor,
-                   full: ViewData | None = None,
-                   window: tuple[int, int, int, int] | None = None) -> Iterator[tuple[str, torch.Tensor, float | None]]:
+    def loss_terms(self, it: int, i: int, v, out, rgb: torch.Tensor, target: torch.Tensor, full: ViewData,
+                   window: tuple[int, int, int, int] | None) -> Iterator[tuple[str, torch.Tensor, float | None]]:
         """The named, weighted loss terms of iteration ``it`` on view ``i`` (render ``out``,
         composited ``rgb``, ``target`` image), in a fixed order, each computed when asked for
         (so the caller times each); a weight of ``None`` is a figure logged, not optimised.
-        ``v`` is the window ``window`` ``(x0, y0, w, h)`` of the whole view ``full`` when
-        training on a crop (else both ``None``)."""
+        ``v`` is the whole view ``full``, or its window ``window`` ``(x0, y0, w, h)`` when
+        training on a crop (``window`` ``None``: no crop)."""
         cfg, lw = self.cfg, self.loss
         photo, l1 = terms.photometric_loss(rgb, target, lw.lambda_dssim)
         yield "photo", photo, 1.0
@@ -281,7 +280,7 @@ class Trainer:
             maps = (out.depth_median, out.normal_cam, surface)
             if window is not None:  # L_mv works in the whole view's pixels
                 maps = tuple(_uncrop(x, window, full.size) for x in maps)
-            mv = self._multiview(i, (v if window is None else full).K, *maps)
+            mv = self._multiview(i, full.K, *maps)
             yield "mv", mv["photo"], lw.lambda_mv
             yield "mvgeo", mv["geo"], lw.lambda_mvgeo
             yield "mv_valid", mv["valid_fraction"], None

@@ -5,7 +5,6 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-
 from pipeline import atomic
 from pipeline.config.mesh import MeshConfig
 from pipeline.data.dtu import load_scene
