@@ -296,6 +296,65 @@ def test_sphere_from_cameras_is_where_they_look(scene_parts):
         sphere_from_cameras({0: K[0]}, {0: T[0]}, (W, H))
 
 
+def test_sphere_from_cameras_holds_each_views_frame(scene_parts):
+    """The radius is the margin times the median over the views of the radius that holds
+    the view's whole frame at the centre's distance: checked against the frame's corner rays
+    by brute force (the largest distance from the centre's projection point on the axis to
+    the corner rays' points at that distance along the ray)."""
+    K, T, _, _, _ = scene_parts
+    centre, r = sphere_from_cameras(K, T, (W, H), margin=1.0)
+    corners = np.array([[-0.5, -0.5, 1.0], [W - 0.5, -0.5, 1.0], [-0.5, H - 0.5, 1.0], [W - 0.5, H - 0.5, 1.0]])
+    need = []
+    for v in K:
+        cam = -T[v][:3, :3].T @ T[v][:3, 3]
+        dist = np.linalg.norm(centre - cam)
+        rays = (np.linalg.inv(K[v]) @ corners.T).T
+        rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+        # The sphere of radius rho around the point `dist` along the axis touches the
+        # corner ray where rho = dist * sin(angle between ray and axis).
+        need.append(max(dist * math.sin(math.acos(ray[2])) for ray in rays))
+    assert r == pytest.approx(float(np.median(need)), rel=1e-9)
+    assert sphere_from_cameras(K, T, (W, H))[1] == pytest.approx(1.1 * r, rel=1e-12)
+
+
+def test_sphere_from_cameras_refuses_axes_meeting_behind_a_camera():
+    # Two cameras at x = -1 and +1, each turned outwards: their axes meet at (0, 0, -0.2), behind both.
+    K = {v: np.array([[50.0, 0, 39.5], [0, 50.0, 29.5], [0, 0, 1]]) for v in (0, 1)}
+    T = {}
+    for v, sign in ((0, -1.0), (1, 1.0)):
+        z = np.array([sign, 0.0, 0.2]) / math.hypot(1.0, 0.2)
+        y = np.array([0.0, 1.0, 0.0])
+        R = np.stack([np.cross(y, z), y, z])
+        T[v] = np.eye(4)
+        T[v][:3, :3] = R
+        T[v][:3, 3] = -R @ np.array([sign, 0.0, 0.0])
+    with pytest.raises(SceneError, match="behind view"):
+        sphere_from_cameras(K, T, (W, H))
+
+
+def test_colmap_sphere_from_points_when_the_cameras_look_in_parallel(tmp_path, scene_parts):
+    """A forward-facing capture (every camera looking the same way): the cameras give no
+    centre, so the COLMAP reader takes the sphere around the sparse points, and says so."""
+    K, T, S, imgs, masks = scene_parts
+    R = T[0][:3, :3]
+    T = {v: T[0].copy() for v in K}
+    for v in K:
+        T[v][:3, 3] = -R @ (-R.T @ T[0][:3, 3] + np.array([20.0 * v, 0.0, 0.0]))
+    src = write_colmap(tmp_path / "colmap", K, T, S, imgs, masks)
+    _prepare(src, tmp_path / "out")
+    meta = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert "points" in meta["scale_mat"] and "do not meet" in meta["scale_mat"]
+    sphere = dtu.load_cameras(tmp_path / "out").norm_to_world
+    assert np.linalg.norm(sphere[:3, 3] - S[:3, 3]) < 0.2 * S[0, 0]  # the points' median, near their centre
+    with pytest.raises(SceneError, match="0 points"):
+        _prepare(write_colmap_no_points(tmp_path / "empty", K, T, imgs, masks), tmp_path / "out2")
+
+
+def write_colmap_no_points(root, K, T, imgs, masks):
+    export.write_colmap(root, K, T, (W, H), imgs, masks, None, binary=False)
+    return root
+
+
 # ---- 3DGS viewer export -------------------------------------------------------------
 
 

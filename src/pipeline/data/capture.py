@@ -112,11 +112,14 @@ def sphere_from_points(points: np.ndarray, quantile: float = 0.95, margin: float
 
 
 def sphere_from_cameras(K: dict[int, np.ndarray], world_to_cam: dict[int, np.ndarray],
-                        size: tuple[int, int]) -> tuple[np.ndarray, float]:
+                        size: tuple[int, int], margin: float = 1.1) -> tuple[np.ndarray, float]:
     """A sphere where the cameras look: centred at the point nearest (least squares) to
-    every optical axis, with the radius that fills each view's shorter half-side (median
-    over the views), for captures that give no points. Cameras looking in parallel have no
-    such point: an error."""
+    every optical axis, its radius ``margin`` times the radius that holds each view's whole
+    frame (the cone to its farthest image corner) at that point's distance, median over
+    the views. An object the views frame fits inside; on DTU's rig this is 0.97x the
+    ``scale_mat`` DTU ships (docs/inputs.md). ``size`` is (width, height) in the pixels of
+    ``K`` (integer pixel centres). Cameras looking in parallel, or whose axes meet behind
+    one of them, have no such point: an error."""
     A, b, cams = np.zeros((3, 3)), np.zeros(3), []
     for v in sorted(K):
         T = world_to_cam[v]
@@ -130,9 +133,17 @@ def sphere_from_cameras(K: dict[int, np.ndarray], world_to_cam: dict[int, np.nda
         raise SceneError("the cameras' optical axes do not meet (parallel or a single view): cannot place the "
                          "object's sphere; give sparse points (COLMAP points3D) or a DTU cameras_sphere.npz")
     centre = np.linalg.solve(A, b)
+    w, h = size
+    corners = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5]])
     radii = []
     for v, c in cams:
-        f = max(K[v][0, 0], K[v][1, 1])
-        half = np.arctan(0.5 * min(size) / f)
+        T, k = world_to_cam[v], K[v]
+        depth = float((T[:3, :3] @ centre + T[:3, 3])[2])
+        if depth <= 0:
+            raise SceneError(f"the cameras' optical axes do not meet in front of the cameras (behind view {v}): "
+                             "cannot place the object's sphere; give sparse points (COLMAP points3D) or a DTU "
+                             "cameras_sphere.npz")
+        rays = np.column_stack([(corners[:, 0] - k[0, 2]) / k[0, 0], (corners[:, 1] - k[1, 2]) / k[1, 1]])
+        half = np.arctan(np.linalg.norm(rays, axis=1).max())  # the widest corner's angle to the axis
         radii.append(np.linalg.norm(centre - c) * np.sin(half))
-    return centre, float(np.median(radii))
+    return centre, margin * float(np.median(radii))

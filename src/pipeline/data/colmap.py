@@ -7,8 +7,10 @@ View ids are the model's posed images sorted by name: 0, 1, 2, ... Camera models
 PINHOLE and SIMPLE_PINHOLE are used as they are; SIMPLE_RADIAL, RADIAL and OPENCV images
 (and masks) are undistorted to the pinhole of their focal lengths and principal point at
 the same size; other models are refused. COLMAP puts pixel centres at +0.5, this project
-at integer coordinates: ``cx = cx_colmap - 0.5``. The unit sphere (``scale_mat``) is set
-around the robust extent of the model's points (:func:`capture.sphere_from_points`).
+at integer coordinates: ``cx = cx_colmap - 0.5``. The unit sphere (``scale_mat``) is where
+the cameras look (:func:`capture.sphere_from_cameras`, as for nerfstudio: the sparse points
+of a real capture hold its background too); around the robust extent of the model's points
+(:func:`capture.sphere_from_points`) when the optical axes do not meet.
 """
 from __future__ import annotations
 
@@ -96,20 +98,21 @@ def read_capture(root: str | Path) -> Capture:
             masks[v] = _mask_file(mask_dir, im.name)
     size = common_size(sizes, cameras_file)
 
-    pts = [(p.xyz, p.track.length()) for p in rec.points3D.values()]
-    xyz = np.array([p for p, _ in pts], np.float64).reshape(-1, 3)
-    seen = np.array([n for _, n in pts]) >= 2
-    if seen.sum() >= MIN_POINTS:  # a point seen by two views is triangulated, not a guess
-        xyz = xyz[seen]
-    if len(xyz) >= MIN_POINTS:
+    try:
+        centre, radius = sphere_from_cameras(K, w2c, size)
+        how = "sphere where the cameras' optical axes meet, holding every view's frame"
+    except SceneError as no_meet:
+        # Forward-facing captures: the sparse points say where the scene is.
+        pts = [(p.xyz, p.track.length()) for p in rec.points3D.values()]
+        xyz = np.array([p for p, _ in pts], np.float64).reshape(-1, 3)
+        seen = np.array([n for _, n in pts]) >= 2
+        if seen.sum() >= MIN_POINTS:  # a point seen by two views is triangulated, not a guess
+            xyz = xyz[seen]
+        if len(xyz) < MIN_POINTS:
+            raise SceneError(f"{_model_file(model, 'points3D')}: {len(xyz)} points; {no_meet}") from no_meet
         centre, radius = sphere_from_points(xyz)
-        how = f"sphere around the robust extent of {len(xyz)} points of {_model_file(model, 'points3D')}"
-    else:
-        try:
-            centre, radius = sphere_from_cameras(K, w2c, size)
-        except SceneError as exc:
-            raise SceneError(f"{_model_file(model, 'points3D')}: {len(xyz)} points; {exc}") from exc
-        how = "sphere where the cameras' optical axes meet (the model has too few points)"
+        how = (f"sphere around the robust extent of {len(xyz)} points of {_model_file(model, 'points3D')} "
+               "(the cameras' optical axes do not meet)")
     cams = dtu.DTUCameras(K=K, world_to_cam=w2c, norm_to_world=sphere_matrix(centre, radius), path=cameras_file)
     return Capture(layout="colmap", root=root, cameras=cams, images=images, masks=masks if mask_dir else None,
                    size=size, image_dir=image_dir, mask_dir=mask_dir, undistort=undistort,

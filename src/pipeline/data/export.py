@@ -252,12 +252,10 @@ def export_colmap(dtu_dir: str | Path, out_dir: str | Path, binary: bool, points
     scan's world frame and units (DTU: mm).
 
     ``points_world`` (N, 3, world units) stand in for the structure-from-motion points a
-    real COLMAP model has; the reader places its unit sphere around them
-    (:func:`pipeline.data.capture.sphere_from_points`), so they decide the normalised
-    frame. Pass a few thousand points of the scene's surface that the cameras see (e.g.
-    :func:`pipeline.benchmarks.layouts.seen_points` of the ground truth's points), not the scan's ``scale_mat``, which
-    COLMAP does not have. ``None``: an empty ``points3D`` (the reader then uses the
-    cameras, as for nerfstudio)."""
+    real COLMAP model has (e.g. :func:`pipeline.benchmarks.layouts.seen_points` of the
+    ground truth's points); ``None`` writes an empty ``points3D``. The reader places its unit
+    sphere where the cameras look, and around these points only when the cameras' optical
+    axes do not meet (:mod:`pipeline.data.colmap`)."""
     dtu_dir = Path(dtu_dir)
     cams, images, masks, size = _dtu_views(dtu_dir)
     info = write_colmap(out_dir, cams.K, cams.world_to_cam, size, images, masks, points_world, binary=binary,

@@ -5,8 +5,8 @@ Each frame has ``file_path`` (relative to the JSON's folder), ``transform_matrix
 the intrinsics ``fl_x, fl_y, cx, cy, w, h`` (and distortion ``k1 k2 k3 p1 p2``) are given
 once at the top level or per frame. nerfstudio puts pixel centres at +0.5, this project at
 integer coordinates: ``cx = cx_nerfstudio - 0.5``. View ids are the frames sorted by
-``file_path``: 0, 1, 2, ... Without sparse points the unit sphere (``scale_mat``) is where
-the cameras look (:func:`capture.sphere_from_cameras`).
+``file_path``: 0, 1, 2, ... The unit sphere (``scale_mat``) is where the cameras look
+(:func:`capture.sphere_from_cameras`).
 """
 from __future__ import annotations
 
@@ -109,7 +109,7 @@ def read_capture(root: str | Path) -> Capture:
     cams = dtu.DTUCameras(K=K, world_to_cam=w2c, norm_to_world=sphere_matrix(centre, radius), path=path)
     return Capture(layout="nerfstudio", root=root, cameras=cams, images=images, masks=masks or None, size=size,
                    image_dir=root, mask_dir=root if masks else None, undistort=undistort,
-                   notes={"layout": "nerfstudio", "scale_mat": "sphere where the cameras' optical axes meet",
+                   notes={"layout": "nerfstudio", "scale_mat": "sphere where the cameras' optical axes meet, holding every view's frame",
                           "view_names": [f["file_path"] for f in frames]})
 
 
