@@ -131,7 +131,7 @@ def run_layout(src: str, out: str, name: str, ref_scene: str, gt_dir: str, param
         result = run_optimize(d["scene"], d["init"], d["priors"], d["surfels"], opt, section(LossConfig, "loss", params),
                               checkpoint=out_dir / ".surfels.ckpt.pt", live_dir=None, progress=False)
     mesh_info = mesh_surfels_dir(d["scene"], d["surfels"], d["mesh"], section(MeshConfig, "mesh", params),
-                                 resolve_backend(opt.backend))
+                                 resolve_backend(opt.backend), init_dir=d["init"])
     pipeline_wall = time.perf_counter() - t0
 
     t1 = time.perf_counter()
