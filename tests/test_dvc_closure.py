@@ -137,7 +137,7 @@ def test_stage_deps_cover_the_code_it_imports(stage):
 # Stages that read the init's files but never run a backend: an edit to a backend or to the
 # init's settings must not make their code stale (it reruns them only through the init's
 # outputs, when those change).
-READS_INIT_OUTPUTS = ("priors", "optimize", "mesh", "evaluate", "renders", "variant")
+READS_INIT_OUTPUTS = ("priors", "optimize", "mesh", "evaluate", "renders", "variant-train", "variant-score")
 
 
 @pytest.mark.parametrize("stage", READS_INIT_OUTPUTS)
@@ -148,7 +148,8 @@ def test_init_backends_are_not_code_of_the_stages_after_it(stage):
     allowed = {"pipeline/init/__init__.py", "pipeline/init/io.py", "pipeline/config/__init__.py",
                "pipeline/config/params.py", "pipeline/config/data.py", "pipeline/config/evaluate.py",
                "pipeline/config/loss.py", "pipeline/config/mesh.py", "pipeline/config/optimize.py",
-               "pipeline/config/priors.py", "pipeline/config/ablation.py", "pipeline/config/scenes.py"}
+               "pipeline/config/priors.py", "pipeline/config/ablation.py", "pipeline/config/scenes.py",
+               "pipeline/config/variants.py"}
     assert set(init_code) <= allowed, f"stage {stage} imports init code or settings: {sorted(set(init_code) - allowed)}"
 
 # The checker itself, on a small package written here.

@@ -57,8 +57,9 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
                   "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
-                  "mesh@scan24", "evaluate@scan24", "variant@synth_relief-baseline_2dgs",
-                  "variant@synth_relief-no_priors", "limit@synth_relief", "table1", "table2"):
+                  "mesh@scan24", "evaluate@scan24", "variant-train@synth_relief-baseline_2dgs",
+                  "variant-score@synth_relief-baseline_2dgs", "variant-train@synth_relief-no_priors",
+                  "variant-score@synth_relief-no_priors", "limit@synth_relief", "table1", "table2"):
         assert f"Running stage '{stage}'" in first
     table2 = (tiny_repo / "reports/table2.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in table2] == ["row", "3-view limit (GT seen by the input views)",
@@ -113,16 +114,27 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     status = _dvc(tiny_repo, "status")
     assert "init@scan24" in status and "baseline@scan24" in status
     for stage in ("priors@scan24", "optimize@scan24", "mesh@scan24", "evaluate@scan24", "renders@scan24",
-                  "variant@synth_relief-no_priors"):
+                  "variant-train@synth_relief-no_priors", "variant-score@synth_relief-no_priors"):
         assert stage not in status, stage
     backend.write_text(original)
 
+    # A meshing setting reruns the meshing and scoring of every cell, never their training.
     params = yaml.safe_load((tiny_repo / "params.yaml").read_text())
+    params["mesh"]["min_component_fraction"] = 0.01
+    (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
+    status = _dvc(tiny_repo, "status")
+    for stage in ("variant-score@synth_relief-no_priors", "variant-score@synth_relief-baseline_2dgs",
+                  "mesh@synth_relief"):
+        assert stage in status, stage
+    for stage in ("variant-train@synth_relief-no_priors", "variant-train@synth_relief-baseline_2dgs",
+                  "optimize@synth_relief"):
+        assert stage not in status, stage
+
     params["ablation"]["variants"]["no_priors"]["mesh"] = {"depth": "expected"}
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     status = _dvc(tiny_repo, "status")
-    assert "variant@synth_relief-no_priors" in status
-    for stage in ("variant@synth_relief-baseline_2dgs", "optimize@synth_relief", "mesh@synth_relief"):
+    assert "variant-score@synth_relief-no_priors" in status
+    for stage in ("variant-train@synth_relief-baseline_2dgs", "optimize@synth_relief"):
         assert stage not in status
 
     params["loss"]["lambda_gcf"] = 2.0  # L_gcf on: the priors stage now extracts features too

@@ -9,8 +9,8 @@ from pipeline.config.ablation import AblationConfig
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import merged_section, section
+from pipeline.config.variants import variant_configs
 from pipeline.errors import ConfigError, InputError
-from pipeline.runs.variant import variant_configs
 
 REPO = Path(__file__).resolve().parents[1]
 

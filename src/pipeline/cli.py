@@ -29,6 +29,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "limit": ("pipeline.stages.limit", "the 3-view limit of a synthetic scene: its GT seen by the input views, scored"),
     "table2": ("pipeline.stages.table2", "Table II: the ablation on the synthetic suite (Markdown + CSV)"),
     "variant": ("pipeline.stages.variant", "one ablation cell: a variant trained, meshed and scored on one scene"),
+    "variant-train": ("pipeline.stages.variant_train", "the training half of an ablation cell (a DVC stage)"),
+    "variant-score": ("pipeline.stages.variant_score", "the meshing and scoring half of an ablation cell (a DVC stage)"),
     "bench-eval": ("pipeline.benchmarks.evaluation", "benchmark the Chamfer evaluation"),
     "bench-raster": ("pipeline.benchmarks.rasterizer", "benchmark the surfel rasterizer"),
     "bench-priors": ("pipeline.benchmarks.priors", "benchmark the priors stage and the prior losses"),

@@ -1,5 +1,6 @@
-"""``gcgs variant SCENE VARIANT``: one cell of the ablation (Table II): the variant trained,
-meshed and scored on one scene (params ``ablation``, docs/optimize.md)."""
+"""``gcgs variant SCENE VARIANT``: one whole cell of the ablation (Table II) or of a sweep:
+the variant trained, meshed and scored on one scene (params ``ablation``, docs/optimize.md).
+DVC runs the halves as ``gcgs variant-train`` and ``gcgs variant-score``."""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +8,7 @@ import argparse
 from pipeline.config.data import DataConfig
 from pipeline.config.params import load_params, section
 from pipeline.config.scenes import scene_entry
+from pipeline.config.variants import init_sources
 from pipeline.runs.variant import run_variant
 
 
@@ -26,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     entry = scene_entry(params, args.name)
     m = run_variant(args.name, args.variant, params, args.scene, entry.src, entry.gt,
-                    {"mvs": args.init_dir, "sfm": f"{args.baseline_dir}/sfm", "random": f"{args.baseline_dir}/random"}, args.priors_dir, args.out_dir, args.report,
+                    init_sources(args.init_dir, args.baseline_dir), args.priors_dir, args.out_dir, args.report,
                     section(DataConfig, "data", params).views)
     print(f"variant {args.variant} on {args.name}: {m.chamfer.overall_mm if m.chamfer else None} mm overall -> {args.report}")
     return 0
