@@ -120,15 +120,17 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
 
     # A meshing setting reruns the meshing and scoring of every cell, never their training.
     params = yaml.safe_load((tiny_repo / "params.yaml").read_text())
-    params["mesh"]["min_component_fraction"] = 0.01
+    kept = params["mesh"]["min_component_fraction"]
+    params["mesh"]["min_component_fraction"] = kept / 2
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     status = _dvc(tiny_repo, "status")
     for stage in ("variant-score@synth_relief-no_priors", "variant-score@synth_relief-baseline_2dgs",
-                  "mesh@synth_relief"):
+                  "mesh@synth_relief", "baseline@synth_relief"):  # the MVS+TSDF baseline meshes too
         assert stage in status, stage
     for stage in ("variant-train@synth_relief-no_priors", "variant-train@synth_relief-baseline_2dgs",
                   "optimize@synth_relief"):
         assert stage not in status, stage
+    params["mesh"]["min_component_fraction"] = kept
 
     params["ablation"]["variants"]["no_priors"]["mesh"] = {"depth": "expected"}
     (tiny_repo / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
