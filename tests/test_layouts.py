@@ -395,3 +395,34 @@ def test_splats_3dgs_ply_has_the_viewer_layout_in_world_units(tmp_path):
     np.testing.assert_allclose(np.stack([d["nx"], d["ny"], d["nz"]], 1), R[:, :, 2], atol=1e-5)
     sh = params.sh_dc.detach().numpy().reshape(50, 3)
     np.testing.assert_allclose(np.stack([d[f"f_dc_{i}"] for i in range(3)], 1), sh, atol=1e-6)
+
+
+@pytest.mark.parametrize("layout", ["dtu", "colmap", "nerfstudio"])
+def test_given_sphere_replaces_the_layouts_own(tmp_path, scene_parts, layout):
+    """``--sphere`` sets the unit sphere whatever the layout gives or derives, says so in
+    scene.json, and leaves the cameras alone; a bad sphere is an error naming the source
+    and nothing is written."""
+    K, T, S, imgs, masks = scene_parts
+    src = tmp_path / layout
+    if layout == "dtu":
+        write_dtu(src, K, T, S, imgs, masks)
+    else:
+        src.mkdir()
+        (write_colmap if layout == "colmap" else lambda r, K, T, S, i, m: write_nerfstudio(r, K, T, i, m))(
+            src, K, T, S, imgs, masks)
+    centre = S[:3, 3] + np.array([3.0, -2.0, 1.0])
+    radius = 0.8 * S[0, 0]
+    prepare_scene(src, tmp_path / "out", DataConfig(views=[0, 2, 3], width=40, height=30),
+                  sphere=(*centre, radius))
+    cams = dtu.load_cameras(tmp_path / "out")
+    np.testing.assert_allclose(cams.norm_to_world[:3, 3], centre, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(cams.norm_to_world[:3, :3], radius * np.eye(3), rtol=1e-12, atol=0)
+    for v in T:  # the cameras are what the layout gives
+        np.testing.assert_allclose(cams.world_to_cam[v], T[v], rtol=0, atol=1e-9)
+    meta = json.loads((tmp_path / "out" / "scene.json").read_text())
+    assert meta["scale_mat"].startswith("given (gcgs prepare --sphere)")
+    for bad, match in (((*centre, 0.0), "RADIUS > 0"), ((*centre, float("nan")), "four finite numbers"),
+                       ((*(2 * T[0][:3, :3].T @ -T[0][:3, 3] - centre), radius), "behind view")):
+        with pytest.raises(SceneError, match=match):
+            prepare_scene(src, tmp_path / "bad", DataConfig(views=[0, 2, 3], width=40, height=30), sphere=bad)
+        assert not (tmp_path / "bad").exists()

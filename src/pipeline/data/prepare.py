@@ -6,6 +6,7 @@ The aspect ratio is never changed.
 """
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from pathlib import Path
 
@@ -16,7 +17,7 @@ import cv2
 import numpy as np
 
 from pipeline.data import dtu, layouts
-from pipeline.data.capture import Capture
+from pipeline.data.capture import Capture, sphere_matrix
 from pipeline.data.scene import Scene, SceneError
 from pipeline.errors import print_warning
 
@@ -65,11 +66,14 @@ def check_size(src: Path, stored: tuple[int, int], width: int, height: int, warn
 def prepare_scene(
     src: str | Path, out: str | Path, cfg: DataConfig, name: str | None = None, extra_meta: dict | None = None,
     warn: Callable[[str], None] = print_warning, use_masks: bool = True,
+    sphere: tuple[float, float, float, float] | None = None,
 ) -> Scene:
     """Load ``src`` at ``cfg.views`` / ``cfg.width x cfg.height`` and write it to ``out`` (a
     gcgs ``scene`` output: never the source or a folder gcgs did not write). Every check
     runs before anything is written. ``use_masks=False`` leaves the source's masks out, as
-    if the capture had none (docs/inputs.md, "Without masks")."""
+    if the capture had none (docs/inputs.md, "Without masks"). ``sphere`` = (cx, cy, cz,
+    radius) in the input's world frame and units replaces the unit sphere (``scale_mat``) the
+    layout gives or derives (docs/inputs.md, "Units and the unit sphere")."""
     src = Path(src)
     extra_meta = dict(extra_meta or {})
     if not use_masks:
@@ -79,10 +83,33 @@ def prepare_scene(
             cap = layouts.read_capture(src)
             if not use_masks:
                 cap.masks = None
+            if sphere is not None:
+                cap.cameras.norm_to_world = given_sphere(sphere, cap.cameras.world_to_cam, cfg.views, src)
+                cap.notes["scale_mat"] = _given_note(sphere)
             scene = _prepare_capture(cap, tmp, cfg, name, extra_meta, warn)
         else:
-            scene = _prepare_dtu(src, tmp, cfg, name, extra_meta, warn, use_masks)
+            scene = _prepare_dtu(src, tmp, cfg, name, extra_meta, warn, use_masks, sphere)
     return scene
+
+
+def given_sphere(sphere, world_to_cam: dict[int, np.ndarray], views, src: Path) -> np.ndarray:
+    """The ``scale_mat`` of a sphere given as (cx, cy, cz, radius) in world units, checked:
+    finite, a positive radius, its centre in front of every training view's camera."""
+    vals = np.asarray(sphere, np.float64).reshape(-1)
+    if vals.shape != (4,) or not np.all(np.isfinite(vals)) or vals[3] <= 0:
+        raise SceneError(f"{src}: the given sphere must be four finite numbers CX CY CZ RADIUS with RADIUS > 0, "
+                         f"got {list(sphere)}")
+    centre = vals[:3]
+    for v in views:
+        T = world_to_cam[v]
+        if (T[:3, :3] @ centre + T[:3, 3])[2] <= 0:
+            raise SceneError(f"{src}: the given sphere's centre {centre.tolist()} is behind view {v}'s camera")
+    return sphere_matrix(centre, float(vals[3]))
+
+
+def _given_note(sphere) -> str:
+    cx, cy, cz, r = (float(x) for x in sphere)
+    return f"given (gcgs prepare --sphere): centre ({cx:g}, {cy:g}, {cz:g}), radius {r:g}, world units"
 
 
 def _check_views(src: Path, cfg: DataConfig) -> None:
@@ -92,7 +119,8 @@ def _check_views(src: Path, cfg: DataConfig) -> None:
 
 
 def _prepare_dtu(src: Path, tmp: Path, cfg: DataConfig, name: str | None, extra_meta: dict | None,
-                 warn: Callable[[str], None], use_masks: bool = True) -> Scene:
+                 warn: Callable[[str], None], use_masks: bool = True,
+                 sphere: tuple[float, float, float, float] | None = None) -> Scene:
     stored_w, stored_h = dtu.stored_image_size(src)  # all cameras are for this size
     check_aspect(src, (stored_w, stored_h), cfg.width, cfg.height)
     check_size(src, (stored_w, stored_h), cfg.width, cfg.height, warn)
@@ -104,6 +132,11 @@ def _prepare_dtu(src: Path, tmp: Path, cfg: DataConfig, name: str | None, extra_
             if not m.any():
                 raise SceneError(f"{src / 'mask'}: the mask of view {v} covers no pixel at {cfg.width}x{cfg.height}")
     cams = dtu.load_cameras(src)
+    norm_to_world = cams.norm_to_world
+    if sphere is not None:
+        norm_to_world = given_sphere(sphere, cams.world_to_cam, cfg.views, src)
+        extra_meta = {**(extra_meta or {}), "scale_mat": _given_note(sphere)}
+        scene = dataclasses.replace(scene, norm_to_world=norm_to_world)
     sx, sy = cfg.width / stored_w, cfg.height / stored_h
     K = {v: geometry.scale_intrinsics(cams.K[v], sx, sy) for v in cams.ids}
     masks = None
@@ -124,7 +157,7 @@ def _prepare_dtu(src: Path, tmp: Path, cfg: DataConfig, name: str | None, extra_
         images=dict(zip(scene.view_ids, scene.images)),
         K=K,
         world_to_cam=cams.world_to_cam,
-        norm_to_world=cams.norm_to_world,
+        norm_to_world=norm_to_world,
         masks=masks,
         meta=meta,
     )

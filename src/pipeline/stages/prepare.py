@@ -25,6 +25,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--height", type=int, default=None, help="training height (default: data.height)")
     p.add_argument("--no-masks", action="store_true",
                    help="leave the source's masks out, as for a capture without masks (docs/inputs.md)")
+    p.add_argument("--sphere", type=float, nargs=4, default=None, metavar=("CX", "CY", "CZ", "RADIUS"),
+                   help="the object's unit sphere (scale_mat) in the input's world frame and units, in place of "
+                        "the one the layout gives or derives (docs/inputs.md)")
     p.add_argument("--params", default=None, help="params.yaml to read `data` from (default: ./params.yaml)")
 
 
@@ -34,7 +37,7 @@ def run(args: argparse.Namespace) -> int:
         height = height_for_width(args.src, args.width)
     cfg = section(DataConfig, "data", load_params(args.params),
                   {"views": args.views, "width": args.width, "height": height})
-    scene = prepare_scene(args.src, args.out, cfg, name=args.name, use_masks=not args.no_masks)
+    scene = prepare_scene(args.src, args.out, cfg, name=args.name, use_masks=not args.no_masks, sphere=args.sphere)
     n_fg = "no masks" if scene.masks is None else f"mask coverage {np.mean(scene.masks):.1%}"
     print(f"prepared {scene.name}: views {scene.view_ids} at {cfg.width}x{cfg.height}, {n_fg} -> {args.out}")
     return 0
