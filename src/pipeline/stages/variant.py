@@ -10,18 +10,12 @@ from pipeline.config.params import load_params, section
 from pipeline.config.scenes import scene_entry
 from pipeline.config.variants import init_sources
 from pipeline.runs.variant import run_variant
+from pipeline.stages.cell_args import add_cell_arguments
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", help="scene name (a key of params `scenes`)")
-    p.add_argument("variant", help="variant name (a key of params `ablation.variants`)")
-    p.add_argument("--scene", required=True, help="prepared scene folder")
-    p.add_argument("--init-dir", required=True, help="init stage output (the mvs cloud)")
-    p.add_argument("--baseline-dir", required=True, help="the baseline stage's output (sfm/ and random/ clouds)")
-    p.add_argument("--priors-dir", required=True, help="priors stage output")
-    p.add_argument("--out-dir", required=True, help="writes surfels/ and mesh/")
-    p.add_argument("--report", required=True, help="metrics JSON (training time beside it, .train.json)")
-    p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
+    add_cell_arguments(p, priors=True, out_help="writes surfels/ and mesh/",
+                       report_help="metrics JSON (training time beside it, .train.json)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -9,17 +9,12 @@ from pipeline.config.params import load_params, section
 from pipeline.config.scenes import scene_entry
 from pipeline.config.variants import init_sources
 from pipeline.runs.variant_score import score_variant
+from pipeline.stages.cell_args import add_cell_arguments
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("name", help="scene name (a key of params `scenes`)")
-    p.add_argument("variant", help="variant name (a key of params `ablation.variants`)")
-    p.add_argument("--scene", required=True, help="prepared scene folder")
-    p.add_argument("--init-dir", required=True, help="init stage output (its depth maps merge into the mesh)")
-    p.add_argument("--baseline-dir", required=True, help="the baseline stage's output (sfm/ and random/ clouds)")
-    p.add_argument("--out-dir", required=True, help="reads surfels/, writes mesh/")
-    p.add_argument("--report", required=True, help="metrics JSON (the training time read from beside it, .train.json)")
-    p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
+    add_cell_arguments(p, priors=False, out_help="reads surfels/, writes mesh/",
+                       report_help="metrics JSON (the training time read from beside it, .train.json)")
 
 
 def run(args: argparse.Namespace) -> int:
