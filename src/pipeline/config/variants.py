@@ -20,6 +20,11 @@ def init_sources(init_dir: str | Path, baseline_dir: str | Path) -> dict[str, Pa
     return {"mvs": Path(init_dir), "sfm": Path(baseline_dir) / "sfm", "random": Path(baseline_dir) / "random"}
 
 
+def training_report(report: str | Path) -> Path:
+    """Where a cell's training time goes: beside its metrics ``report``, suffix ``.train.json``."""
+    return Path(report).with_suffix(".train.json")
+
+
 def variant_entry(params: dict, variant: str) -> VariantConfig:
     """The settings ``variant`` changes (``ablation.variants.VARIANT``); an error naming the
     defined ones when it is not defined."""

@@ -5,9 +5,9 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
-from pipeline.config.variants import variant_configs
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.config.params import section
+from pipeline.config.variants import training_report, variant_configs
 from pipeline.evaluation.record import SceneMetrics
 from pipeline.rasterizer import resolve_backend
 from pipeline.runs.mesh import mesh_surfels_dir
@@ -25,7 +25,7 @@ def score_variant(name: str, variant: str, params: dict, scene_dir: str | Path, 
     surfels_dir, mesh_dir = out_dir / "surfels", out_dir / "mesh"
     backend = resolve_backend(opt.backend)
     mesh_surfels_dir(scene_dir, surfels_dir, mesh_dir, mesh_cfg, backend, init_dirs[v.init])
-    metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, report.with_suffix(".train.json"),
+    metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, training_report(report),
                             section(EvaluateConfig, "evaluate", params), opt, mesh_cfg, input_views, backend)
     metrics = dataclasses.replace(metrics, variant={"name": variant, "init": v.init, "optimize": v.optimize,
                                                     "loss": v.loss, "mesh": v.mesh})

@@ -10,23 +10,18 @@ import json
 from pathlib import Path
 
 from pipeline import atomic
-from pipeline.config.variants import variant_training
+from pipeline.config.variants import training_report, variant_training
 from pipeline.measure import measure
 from pipeline.runs.optimize import run_optimize, timing_report
-
-
-def timing_path(report: str | Path) -> Path:
-    """Where a cell's training time goes: beside its metrics ``report``, suffix ``.train.json``."""
-    return Path(report).with_suffix(".train.json")
 
 
 def train_variant(variant: str, params: dict, scene_dir: str | Path, init_dirs: dict[str, Path],
                   priors_dir: str | Path, out_dir: str | Path, report: str | Path) -> None:
     """Train ``variant``: writes ``out_dir/surfels`` (same bytes for the same inputs) and the
-    training time to :func:`timing_path` of ``report``."""
+    training time to :func:`~pipeline.config.variants.training_report` of ``report``."""
     v, opt, loss = variant_training(params, variant)
     out_dir = Path(out_dir)
     with measure(reset_peak=False) as usage:
         result = run_optimize(scene_dir, init_dirs[v.init], priors_dir, out_dir / "surfels", opt, loss,
                               checkpoint=out_dir.parent / f".{out_dir.name}.ckpt.pt", live_dir=None, progress=False)
-    atomic.write_text(timing_path(report), json.dumps(timing_report(result, usage.as_dict(), opt.preset), indent=2) + "\n")
+    atomic.write_text(training_report(report), json.dumps(timing_report(result, usage.as_dict(), opt.preset), indent=2) + "\n")
