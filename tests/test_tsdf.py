@@ -162,8 +162,10 @@ def test_every_part_of_a_multi_part_object_survives(tmp_path, capsys):
     parts = [(c + np.array(off) * r, rad * r) for off, rad in
              (([-0.45, 0.0, 0.0], 0.2), ([0.45, 0.0, 0.0], 0.15), ([0.0, 0.45, 0.0], 0.12),
               ([0.0, -0.45, 0.0], 0.1), ([0.0, 0.0, 0.0], 0.18))]
-    floater = (c + np.array([0.3, 0.3, -0.3]) * r, 0.025 * r)
-    scene, gt = make_scene(200, 150, spheres=parts + [floater])
+    # A floater ~0.4% of the largest part's area (under the default 0.5%), at a size where the
+    # rims' fragments are smaller still (at 200x150 they reach 0.5% of the largest part).
+    floater = (c + np.array([0.3, 0.3, -0.3]) * r, 0.012 * r)
+    scene, gt = make_scene(400, 300, spheres=parts + [floater])
     scene_dir, init_dir = _init_folder_from_gt(tmp_path, scene, gt)
     out = tmp_path / "m.ply"
     assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(out)]) == 0

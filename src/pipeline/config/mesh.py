@@ -17,7 +17,7 @@ class MeshConfig:
 
     voxel_norm: float = 0.004
     trunc_norm: float = 0.016
-    min_component_fraction: float = 0.05
+    min_component_fraction: float = 0.005
     # gcgs mesh (surfels -> depth -> TSDF):
     depth: str = "median"  # rendered depth fused: median (2DGS on DTU) | expected
     alpha_min: float = 0.5  # pixels with less accumulated alpha have no depth
