@@ -143,3 +143,40 @@ def test_seen_points_drops_hidden_points(bundled_scan):
     mid, r = c + 0.5 * n * np.linalg.norm(S[:3, 3] - c), 1e4
     wall = np.array([mid + r * (s * a + t * b) for s, t in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
     assert len(layouts.seen_points(pts, K, T, (W, H), n=1000, mesh=(wall, np.array([[0, 1, 2], [0, 2, 3]])))) == 0
+
+
+def test_perturbed_scan_shifts_every_projection_by_the_given_pixels(tmp_path, tiny_scan):
+    src, K, T, S = tiny_scan
+    shifted = layouts.perturbed_scan(src, tmp_path / "shifted", 1e-3, seed=1)
+    before, after = dtu.load_cameras(src), dtu.load_cameras(shifted)
+    np.testing.assert_array_equal(after.norm_to_world, before.norm_to_world)
+    pts = _points(S)
+    directions = []
+    for v in before.ids:
+        a, za = geometry.project(after.K[v], after.world_to_cam[v], pts)
+        b, zb = geometry.project(before.K[v], before.world_to_cam[v], pts)
+        shift = a - b
+        np.testing.assert_allclose(np.linalg.norm(shift, axis=1), 1e-3, rtol=1e-4)
+        np.testing.assert_allclose(shift, np.broadcast_to(shift[0], shift.shape), atol=1e-8)  # one image translation
+        np.testing.assert_allclose(za, zb, rtol=1e-12)
+        directions.append(shift[0])
+    assert np.ptp(np.asarray(directions), axis=0).max() > 1e-4  # a random direction per camera
+    # images and masks are the scan's own files, not copies
+    assert (shifted / "image").is_symlink() and (shifted / "image").resolve() == (src / "image").resolve()
+    again = layouts.perturbed_scan(src, tmp_path / "shifted", 1e-3, seed=1)  # rerun: replaced, same cameras
+    np.testing.assert_array_equal(dtu.load_cameras(again).K[0], after.K[0])
+
+
+def test_skew_free_scan_drops_only_the_skew(tmp_path, bundled_scan):
+    """The bundled scan's cameras carry DTU's tiny skew; the skew-free copy has none, and
+    otherwise the same intrinsics, pose and sphere."""
+    free = layouts.perturbed_scan(bundled_scan, tmp_path / "free", 0.0, seed=0, drop_skew=True)
+    before, after = dtu.load_cameras(bundled_scan), dtu.load_cameras(free)
+    assert max(abs(before.K[v][0, 1]) for v in before.ids) > 1e-6  # there was a skew to drop
+    np.testing.assert_array_equal(after.norm_to_world, before.norm_to_world)
+    for v in before.ids:
+        assert abs(after.K[v][0, 1]) < 1e-9
+        expect = before.K[v].copy()
+        expect[0, 1] = 0.0
+        np.testing.assert_allclose(after.K[v], expect, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(after.world_to_cam[v], before.world_to_cam[v], atol=1e-9)

@@ -13,6 +13,17 @@ fresh child process per layout (its wall time and peak memory its own), and the 
 scored like ``gcgs evaluate --scene data/scenes/S --gt data/synth/S/gt`` (culled by the
 DTU-layout scene's masks; all layouts' meshes are in the scan's world frame, mm).
 
+``--sphere dtu`` prepares the COLMAP and nerfstudio layouts with the DTU layout's unit
+sphere (``gcgs prepare --sphere``) instead of the one they derive from the cameras, so the
+layouts differ only in the cameras: the skew they cannot hold (dropped) and their files'
+rounding, ~1e-4 px together. ``--skew-free`` adds a run of the DTU layout with the skew
+dropped too (``dtu_noskew``). ``--perturb-runs N``
+adds N runs of the DTU layout whose cameras are shifted on the image by ``--perturb-px``
+(a random direction per camera and run; :func:`perturbed_scan`): the spread of those runs is
+how far the same pipeline moves under a camera change of that size, the yardstick for the
+layouts' differences (a training seed moves other things: the random init of colours and
+the densification's samples).
+
 Also recorded: the largest reprojection difference (px, at the training size) of the
 prepared cameras against the DTU-layout prepared scene ``data/scenes/S`` over every camera
 and the sparse points, and each layout's unit sphere (``scale_mat``: centre and radius in
@@ -26,6 +37,7 @@ import argparse
 import csv
 import io
 import json
+import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -39,7 +51,7 @@ from pipeline.meshing.raycast import MeshCaster
 
 LAYOUTS = ("dtu", "colmap", "nerfstudio")
 SCENES = ("synth_thin", "synth_relief", "synth_textureless")
-COLUMNS = ("scene", "layout", "overall_mm", "accuracy_mm", "completeness_mm", "max_reprojection_px",
+COLUMNS = ("scene", "layout", "sphere_from", "overall_mm", "accuracy_mm", "completeness_mm", "max_reprojection_px",
            "sphere_cx_mm", "sphere_cy_mm", "sphere_cz_mm", "sphere_radius_mm", "radius_vs_dtu",
            "init_points", "surfels_final", "train_wall_s", "pipeline_wall_s", "eval_wall_s", "peak_rss_mb")
 
@@ -94,11 +106,51 @@ def export_layouts(name: str, synth_dir: Path, work: Path, n_points: int, seed: 
     return srcs, points
 
 
-def run_layout(src: str, out: str, name: str, ref_scene: str, gt_dir: str, params_path: str | None) -> dict:
+def perturbed_scan(synth_dir: Path, out: Path, shift_px: float, seed: int, drop_skew: bool = False) -> Path:
+    """A copy of the DTU-layout scan ``synth_dir`` at ``out`` whose every camera projects
+    ``shift_px`` pixels away from the original, in a random direction per camera
+    (``seed``): ``world_mat_i <- A world_mat_i`` with ``A`` the image translation by that
+    shift, so points, depths and the unit sphere are untouched. ``drop_skew`` first sets
+    each camera's skew ``K[0, 1]`` to 0, the one change the COLMAP and nerfstudio layouts
+    make to these cameras (:mod:`pipeline.data.export`). Images, masks and the scan's
+    metadata are symlinked, not copied."""
+    synth_dir = Path(synth_dir).resolve()
+    cams = np.load(dtu.find_camera_file(synth_dir))
+    rng = np.random.default_rng(seed)
+    shifted = {}
+    for key in cams.files:
+        P = np.asarray(cams[key], np.float64)
+        if key.startswith("world_mat_"):
+            if drop_skew:
+                K, world_to_cam = geometry.decompose_projection(P[:3])
+                K[0, 1] = 0.0
+                P = np.eye(4)
+                P[:3] = K @ world_to_cam[:3]
+            angle = rng.uniform(0.0, 2.0 * np.pi)
+            A = np.eye(P.shape[0])
+            A[0, 2], A[1, 2] = shift_px * np.cos(angle), shift_px * np.sin(angle)
+            P = A @ P
+        shifted[key] = P
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for entry in synth_dir.iterdir():
+        if entry.name != "cameras_sphere.npz":
+            (out / entry.name).symlink_to(entry)
+    buf = io.BytesIO()
+    np.savez(buf, **shifted)
+    atomic.write_bytes(out / "cameras_sphere.npz", buf.getvalue())
+    return out
+
+
+def run_layout(src: str, out: str, name: str, ref_scene: str, gt_dir: str, params_path: str | None,
+               sphere: tuple[float, float, float, float] | None = None) -> dict:
     """The per-scene pipeline on ``src`` into ``out`` (scene/, init/, priors/, surfels/,
     mesh/, eval.json) with the params of ``params_path``, as the dvc stages run it; the
     mesh is scored against ``gt_dir`` culled by ``ref_scene``'s masks (the DTU-layout
-    prepared scene). Runs in a child process (:func:`pipeline.measure.run_in_child`)."""
+    prepared scene). ``sphere`` (cx, cy, cz, radius; world units) replaces the layout's unit
+    sphere, as ``gcgs prepare --sphere`` does. Runs in a child process
+    (:func:`pipeline.measure.run_in_child`)."""
     from pipeline.config.ablation import losses_in_use
     from pipeline.config.data import DataConfig
     from pipeline.config.evaluate import EvaluateConfig
@@ -122,7 +174,7 @@ def run_layout(src: str, out: str, name: str, ref_scene: str, gt_dir: str, param
     d = {k: out_dir / k for k in ("scene", "init", "priors", "surfels", "mesh")}
     views = section(DataConfig, "data", params).views
     t0 = time.perf_counter()
-    prepare_scene(src, d["scene"], section(DataConfig, "data", params), name=name)
+    prepare_scene(src, d["scene"], section(DataConfig, "data", params), name=name, sphere=sphere)
     _, init_info = run_init(d["scene"], d["init"], section(InitConfig, "init", params))
     run_priors(d["scene"], d["priors"], section(PriorsConfig, "priors", params), losses_in_use(params),
                init_dir=d["init"])
@@ -165,10 +217,10 @@ def max_reprojection_px(scene_dir: Path, ref_dir: Path, points: np.ndarray) -> f
     return worst
 
 
-def row(scene: str, layout: str, run: dict, reproj: float, sphere: np.ndarray, ref_radius: float,
-        usage_peak: float | None) -> dict:
+def row(scene: str, layout: str, sphere_from: str, run: dict, reproj: float, sphere: np.ndarray,
+        ref_radius: float, usage_peak: float | None) -> dict:
     m = run["metrics"]
-    return {"scene": scene, "layout": layout, "overall_mm": f"{m['overall_mm']:.4f}",
+    return {"scene": scene, "layout": layout, "sphere_from": sphere_from, "overall_mm": f"{m['overall_mm']:.4f}",
             "accuracy_mm": f"{m['accuracy_mm']:.4f}", "completeness_mm": f"{m['completeness_mm']:.4f}",
             "max_reprojection_px": f"{reproj:.2e}",
             "sphere_cx_mm": f"{sphere[0, 3]:.2f}", "sphere_cy_mm": f"{sphere[1, 3]:.2f}",
@@ -198,6 +250,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    "(reference cameras, culling masks)")
     p.add_argument("--points", type=int, default=3000, help="sparse points written into the COLMAP model")
     p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
+    p.add_argument("--sphere", choices=("derived", "dtu"), default="derived",
+                   help="the COLMAP and nerfstudio layouts' unit sphere: the one they derive (default), or the "
+                   "DTU layout's, given as `gcgs prepare --sphere` does")
+    p.add_argument("--perturb-runs", type=int, default=0, help="runs of the DTU layout with every camera shifted "
+                   "by --perturb-px in a random direction (layouts dtu_shift1..N): the spread such a change causes")
+    p.add_argument("--perturb-px", type=float, default=1e-4, help="the shift of the perturbed runs, px at the "
+                   "scan's stored size (the layouts' cameras differ by ~1e-4 px)")
+    p.add_argument("--skew-free", action="store_true", help="also run the DTU layout with every camera's skew "
+                   "set to 0 (layout dtu_noskew), the change the COLMAP and nerfstudio layouts make")
     p.add_argument("--resume", action="store_true", help="keep the runs of WORK that finished (their run.json) "
                    "instead of running them again (the exports are redone)")
 
@@ -206,12 +267,25 @@ def run(args: argparse.Namespace) -> int:
     work, out = Path(args.work_dir), Path(args.out)
     atomic.check_output_file(out)
     rows: list[dict] = []
+    if args.perturb_runs < 0 or not (np.isfinite(args.perturb_px) and args.perturb_px > 0):
+        raise SystemExit("gcgs bench-layouts: --perturb-runs must be >= 0 and --perturb-px a positive number")
     for scene in args.scenes:
         synth_dir, ref_scene = Path(args.synth_root) / scene, Path(args.scenes_root) / scene
         print(f"[bench-layouts] {scene}: exporting {synth_dir} to COLMAP (binary) and nerfstudio ...", flush=True)
         srcs, points = export_layouts(scene, synth_dir, work, args.points)
-        ref_radius = dtu.load_cameras(ref_scene).norm_to_world[0, 0]
-        for layout in args.layouts:
+        ref_norm_to_world = dtu.load_cameras(ref_scene).norm_to_world
+        ref_radius = ref_norm_to_world[0, 0]
+        dtu_sphere = (*map(float, ref_norm_to_world[:3, 3]), float(ref_radius))
+        runs = [(layout, srcs[layout], dtu_sphere if args.sphere == "dtu" and layout != "dtu" else None)
+                for layout in args.layouts]
+        for k in range(1, args.perturb_runs + 1):
+            shifted = perturbed_scan(synth_dir, work / scene / f"src_dtu_shift{k}", args.perturb_px, seed=k)
+            runs.append((f"dtu_shift{k}", shifted, None))
+        if args.skew_free:
+            runs.append(("dtu_noskew", perturbed_scan(synth_dir, work / scene / "src_dtu_noskew", 0.0, seed=0,
+                                                      drop_skew=True), None))
+        for layout, src, sphere in runs:
+            sphere_from = "dtu" if layout.startswith("dtu") or sphere is not None else "derived"
             out_dir = work / scene / layout
             if args.resume and (out_dir / "run.json").is_file():
                 rows.append(json.loads((out_dir / "run.json").read_text())["row"])
@@ -220,11 +294,11 @@ def run(args: argparse.Namespace) -> int:
                 continue
             print(f"[bench-layouts] {scene} / {layout}: prepare, init, priors, optimize, mesh, evaluate ...", flush=True)
             (out_dir / "run.json").unlink(missing_ok=True)
-            res, usage = run_in_child(run_layout, str(srcs[layout]), str(out_dir), scene, str(ref_scene),
-                                      str(synth_dir / "gt"), args.params)
+            res, usage = run_in_child(run_layout, str(src), str(out_dir), scene, str(ref_scene),
+                                      str(synth_dir / "gt"), args.params, sphere)
             reproj = max_reprojection_px(out_dir / "scene", ref_scene, points)
-            sphere = dtu.load_cameras(out_dir / "scene").norm_to_world
-            rows.append(row(scene, layout, res, reproj, sphere, ref_radius, usage.peak_rss_mb))
+            norm_to_world = dtu.load_cameras(out_dir / "scene").norm_to_world
+            rows.append(row(scene, layout, sphere_from, res, reproj, norm_to_world, ref_radius, usage.peak_rss_mb))
             atomic.write_text(out_dir / "run.json", json.dumps({"row": rows[-1], **res, "max_reprojection_px": reproj,
                                                                 "child_wall_s": round(usage.wall_s, 2)},
                                                                indent=2, default=str) + "\n")
