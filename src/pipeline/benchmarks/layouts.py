@@ -37,7 +37,6 @@ import argparse
 import csv
 import io
 import json
-import shutil
 import time
 from collections.abc import Mapping
 from pathlib import Path
@@ -113,7 +112,8 @@ def perturbed_scan(synth_dir: Path, out: Path, shift_px: float, seed: int, drop_
     shift, so points, depths and the unit sphere are untouched. ``drop_skew`` first sets
     each camera's skew ``K[0, 1]`` to 0, the one change the COLMAP and nerfstudio layouts
     make to these cameras (:mod:`pipeline.data.export`). Images, masks and the scan's
-    metadata are symlinked, not copied."""
+    metadata are symlinked, not copied; ``out`` is replaced like any folder gcgs writes
+    (:func:`pipeline.atomic.atomic_dir`), never a folder it did not write."""
     synth_dir = Path(synth_dir).resolve()
     cams = np.load(dtu.find_camera_file(synth_dir))
     rng = np.random.default_rng(seed)
@@ -131,16 +131,12 @@ def perturbed_scan(synth_dir: Path, out: Path, shift_px: float, seed: int, drop_
             A[0, 2], A[1, 2] = shift_px * np.cos(angle), shift_px * np.sin(angle)
             P = A @ P
         shifted[key] = P
-    if out.exists():
-        shutil.rmtree(out)
-    out.mkdir(parents=True)
-    for entry in synth_dir.iterdir():
-        if entry.name != "cameras_sphere.npz":
-            (out / entry.name).symlink_to(entry)
-    buf = io.BytesIO()
-    np.savez(buf, **shifted)
-    atomic.write_bytes(out / "cameras_sphere.npz", buf.getvalue())
-    return out
+    with atomic.atomic_dir(out, export.KIND, inputs=(synth_dir,)) as tmp:
+        for entry in synth_dir.iterdir():
+            if entry.name != "cameras_sphere.npz":
+                (tmp / entry.name).symlink_to(entry)
+        np.savez(tmp / "cameras_sphere.npz", **shifted)
+    return Path(out)
 
 
 def run_layout(src: str, out: str, name: str, ref_scene: str, gt_dir: str, params_path: str | None,
