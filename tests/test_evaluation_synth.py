@@ -1,5 +1,6 @@
 """End to end: ``gcgs synth`` writes a scene and its GT, ``gcgs evaluate`` scores offset meshes."""
 import json
+import math
 
 import numpy as np
 import open3d as o3d
@@ -29,6 +30,21 @@ def test_synth_then_evaluate_offset_meshes(tmp_path, bundled_scan):
         assert m["accuracy_mm"] == pytest.approx(delta, rel=0.1)
         assert m["completeness_mm"] == pytest.approx(delta, rel=0.1)
         assert m["overall_mm"] == pytest.approx((m["accuracy_mm"] + m["completeness_mm"]) / 2)
+    # The split by input views seeing the surface (issue 19): every GT point is within
+    # max_dist of the offset mesh, so the groups' means weighted by their fractions give the
+    # overall completeness back, and the surface the views see is off by delta too.
+    from pipeline.config.evaluate import EvaluateConfig
+    from pipeline.evaluation import dtu_eval, seen
+
+    m = dtu_eval.evaluate_mesh(*gtmod.read_mesh(tmp_path / "offset.ply"), gtmod.read_ground_truth(scene / "gt", None),
+                               EvaluateConfig(), log=None, seen_views=seen.load_input_views(scene, [23, 24, 33]))
+    acc, comp = m["accuracy_by_views_seen"], m["completeness_by_views_seen"]
+    assert m["counts"]["completeness_used"] == m["counts"]["gt_above_plane"]
+    assert sum(g["fraction"] for g in comp.values()) == pytest.approx(1.0)
+    assert sum(g["fraction"] * g["completeness_mm"] for g in comp.values() if g["fraction"] > 0) == pytest.approx(
+        m["completeness_mm"])
+    assert comp["2+"]["fraction"] > 0.3 and comp["2+"]["completeness_mm"] == pytest.approx(delta, rel=0.1)
+    assert acc["2+"]["accuracy_mm"] == pytest.approx(delta, rel=0.1)
 
 
 # --- accuracy split by the input views that see the surface (issue 19) ---------------------------
@@ -60,6 +76,24 @@ def test_views_seeing_counts_image_bounds_and_occlusion():
     points = np.array([[0, 0, 0], [-45, 0, 0], [120, 0, 0], [200, 0, 0.0]])
     # all three; the occluder hides it from x = 30; only x = 30 has it in its image; none
     np.testing.assert_array_equal(views_seeing(points, V, F, views), [3, 2, 1, 0])
+
+
+def test_completeness_by_views_seen_groups_the_gt_points_themselves():
+    from pipeline.evaluation.seen import completeness_by_views_seen
+
+    V, F, views = _seen_fixture()
+    # seen by 3, 2 (occluded from x = 30), 1, 0 views; the last two "2+" points: one beyond
+    # max_dist (left out of the mean, not of the fraction), one at inf (beyond the search)
+    gt_points = np.array([[0, 0, 0], [-45, 0, 0], [120, 0, 0], [200, 0, 0], [1, 0, 0], [2, 0, 0.0]])
+    dist = np.array([0.2, 0.6, 3.0, 9.0, 25.0, np.inf])
+    r = completeness_by_views_seen(gt_points, dist, V, F, views, max_dist_mm=20.0)
+    assert r["2+"]["fraction"] == pytest.approx(4 / 6) and r["2+"]["completeness_mm"] == pytest.approx(0.4)
+    assert r["1"]["fraction"] == pytest.approx(1 / 6) and r["1"]["completeness_mm"] == pytest.approx(3.0)
+    assert r["0"]["fraction"] == pytest.approx(1 / 6) and r["0"]["completeness_mm"] == pytest.approx(9.0)
+    with pytest.raises(ValueError, match="6 GT points but 5 distances"):
+        completeness_by_views_seen(gt_points, dist[:5], V, F, views, max_dist_mm=20.0)
+    empty = completeness_by_views_seen(np.zeros((0, 3)), np.zeros(0), V, F, views, max_dist_mm=20.0)
+    assert all(math.isnan(g["completeness_mm"]) for g in empty.values())
 
 
 def test_accuracy_by_views_seen_groups_by_the_nearest_gt_point():

@@ -17,7 +17,10 @@ def _evaluate_mesh_result(**over):
     m = {"accuracy_mm": 0.5, "completeness_mm": 1.5, "overall_mm": 1.0, "valid": True, "problems": [],
          "counts": {"completeness_used": 30, "gt_above_plane": 40}, "timings_s": {}, "config": {},
          "accuracy_by_views_seen": {"2+": {"fraction": 0.9, "accuracy_mm": 0.4}, "1": {"fraction": 0.1, "accuracy_mm": 1.4},
-                                    "0": {"fraction": 0.0, "accuracy_mm": math.nan}}}
+                                    "0": {"fraction": 0.0, "accuracy_mm": math.nan}},
+         "completeness_by_views_seen": {"2+": {"fraction": 0.6, "completeness_mm": 0.3},
+                                        "1": {"fraction": 0.0, "completeness_mm": math.nan},
+                                        "0": {"fraction": 0.4, "completeness_mm": 3.3}}}
     return m | over
 
 
@@ -30,6 +33,8 @@ def test_round_trip_keeps_every_figure(tmp_path):
     assert back.variant == {"name": "v"} and back.heldout is None
     # JSON has no NaN: an empty group's accuracy is null and reads back as NaN
     assert json.loads((tmp_path / "m.json").read_text())["chamfer"]["accuracy_by_views_seen"]["0"]["accuracy_mm"] is None
+    assert back.chamfer.completeness_by_views_seen["0"] == {"fraction": 0.4, "completeness_mm": 3.3}
+    assert math.isnan(back.chamfer.completeness_by_views_seen["1"]["completeness_mm"])
     h = SceneMetrics(**COMMON, heldout=HeldOut(4, (200, 150), 0.9, 0.7, None))
     h.write(tmp_path / "h.json")
     assert SceneMetrics.read(tmp_path / "h.json").heldout == h.heldout

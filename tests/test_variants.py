@@ -79,7 +79,10 @@ def test_table2_rows_components_and_mean(tmp_path):
         _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": chamfer(mvs, 0.5, 50)}})
         _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": chamfer(plain, 2.0, 100)})
         _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {**chamfer(full, 0.25, 150), "accuracy_by_views_seen": {
-            "2+": {"fraction": 0.9, "accuracy_mm": 0.2 * full}, "1": {"fraction": 0.1, "accuracy_mm": None}}}})
+            "2+": {"fraction": 0.9, "accuracy_mm": 0.2 * full}, "1": {"fraction": 0.1, "accuracy_mm": None}},
+            "completeness_by_views_seen": {"2+": {"fraction": 0.5, "completeness_mm": 0.5 * full},
+                                           "1": {"fraction": 0.1, "completeness_mm": full},
+                                           "0": {"fraction": 0.4, "completeness_mm": 4 * full}}}})
     ablation = AblationConfig(**BASE["ablation"])
     rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
                         tmp_path / "baseline", tmp_path / "limit")
@@ -105,6 +108,9 @@ def test_table2_rows_components_and_mean(tmp_path):
     assert f"| {MVS_TSDF} | 0.25 | 0.25 |" in md
     seen2 = md.split("**Accuracy on surface seen by >= 2 input views**")[1].split("**How much")[0]
     assert "| full method | 0.200 (90%) | 0.400 (90%) | 0.300 |" in seen2 and "| plain |" not in seen2
+    by_gt = md.split("**Completeness by how many input views see the GT surface**")[1].split("**How much")[0]
+    assert "| full method | 0.50 / 1.00 / 4.00 | 1.00 / 2.00 / 8.00 | 0.75 / 1.50 / 6.00 |" in by_gt
+    assert "| plain |" not in by_gt
     assert "published" not in md  # no published figure unless given, and then apart:
     published = read_published_ablation(REPO / "data" / "published" / "gcgs_table2_ablation.csv")
     assert published[-1] == {"dense_init": True, "gcf": True, "nor": True, "mean_mm": 0.95}

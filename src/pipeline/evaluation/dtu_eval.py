@@ -38,7 +38,7 @@ from pipeline import atomic, geometry
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.gt import GroundTruth, read_mesh
 from pipeline.evaluation.sampling import check_mesh, radius_downsample, sample_mesh
-from pipeline.evaluation.seen import InputView, accuracy_by_views_seen
+from pipeline.evaluation.seen import InputView, accuracy_by_views_seen, completeness_by_views_seen
 
 # The script's masks are 1600 px wide; its 24 px dilation is scaled to other widths.
 REFERENCE_MASK_WIDTH_PX = 1600
@@ -169,7 +169,7 @@ def evaluate_mesh(
     downsampling order (synthetic GT points are thinned in an order derived from their
     own seed, never this one: see ``gt.GT_SEED_PURPOSE``). ``log`` receives progress lines (``None``: silent).
     ``seen_views``: the input cameras; with a GT mesh (synthetic scenes) the result also has
-    ``accuracy_by_views_seen`` (:func:`pipeline.evaluation.seen.accuracy_by_views_seen`). Raises
+    ``accuracy_by_views_seen`` and ``completeness_by_views_seen`` (:mod:`pipeline.evaluation.seen`). Raises
     :class:`~pipeline.evaluation.sampling.MeshError` for an empty or degenerate mesh.
 
     Returns a JSON-ready dict: ``accuracy_mm``, ``completeness_mm``, ``overall_mm`` (NaN when
@@ -223,10 +223,10 @@ def evaluate_mesh(
     d_acc = _nn_distances(data_in_obs, gt.points_mm, max_dist)
     acc, n_acc, out_acc = _mean_below(d_acc, max_dist)
     say(f"[evaluate] accuracy: {len(d_acc)} data points -> {len(gt.points_mm)} GT points ({lap('accuracy'):.1f} s)")
-    by_seen = None
+    by_seen = gt_mesh = None
     if seen_views and (gt.root / "mesh.ply").is_file():
-        by_seen = accuracy_by_views_seen(data_in_obs, gt.points_mm, *read_mesh(gt.root / "mesh.ply"), seen_views,
-                                         max_dist)
+        gt_mesh = read_mesh(gt.root / "mesh.ply")
+        by_seen = accuracy_by_views_seen(data_in_obs, gt.points_mm, *gt_mesh, seen_views, max_dist)
         say("[evaluate] accuracy by input views seeing the surface: " + ", ".join(
             f"{g}: {100 * r['fraction']:.1f}% at {r['accuracy_mm']:.3f} mm" for g, r in by_seen.items())
             + f" ({lap('seen'):.1f} s)")
@@ -235,6 +235,12 @@ def evaluate_mesh(
     comp, n_comp, out_comp = _mean_below(d_comp, max_dist)
     say(f"[evaluate] completeness: {len(gt_above)} GT points above the plane -> {len(data_in)} data points "
         f"({lap('completeness'):.1f} s)")
+    comp_by_seen = None
+    if gt_mesh is not None:
+        comp_by_seen = completeness_by_views_seen(gt_above, d_comp, *gt_mesh, seen_views, max_dist)
+        say("[evaluate] completeness by input views seeing the GT point: " + ", ".join(
+            f"{g}: {100 * r['fraction']:.1f}% at {r['completeness_mm']:.3f} mm" for g, r in comp_by_seen.items())
+            + f" ({lap('seen_completeness'):.1f} s)")
     counts.update(gt_points=len(gt.points_mm), gt_above_plane=len(gt_above), accuracy_used=n_acc,
                   completeness_used=n_comp)
     if n_acc == 0:
@@ -259,6 +265,7 @@ def evaluate_mesh(
         "counts": counts,
         "fraction_beyond_max_dist": {"accuracy": out_acc, "completeness": out_comp},
         **({"accuracy_by_views_seen": by_seen} if by_seen is not None else {}),
+        **({"completeness_by_views_seen": comp_by_seen} if comp_by_seen is not None else {}),
         "timings_s": timings,
         "config": {**dataclasses.asdict(cfg), "seed": seed,
                    "cull_view_ids": [v.view_id for v in views] if views else []},

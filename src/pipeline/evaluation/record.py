@@ -51,7 +51,7 @@ def _json_number(value: float | None) -> float | None:
 
 
 def _by_seen(groups: dict | None) -> dict | None:
-    """Accuracy by views seen with JSON's nulls (an empty group) back to NaN."""
+    """Accuracy or completeness by views seen with JSON's nulls (an empty group) back to NaN."""
     if groups is None:
         return None
     return {g: {k: _nan(v) for k, v in r.items()} for g, r in groups.items()}
@@ -68,12 +68,14 @@ class Chamfer:
     problems: tuple[str, ...] = ()
     counts: dict = field(default_factory=dict)
     accuracy_by_views_seen: dict | None = None  # pipeline.evaluation.seen; synthetic scenes
+    completeness_by_views_seen: dict | None = None  # likewise
 
     @classmethod
     def of(cls, metrics: dict) -> Chamfer:
         """From :func:`pipeline.evaluation.dtu_eval.evaluate_mesh`'s result."""
         return cls(metrics["accuracy_mm"], metrics["completeness_mm"], metrics["overall_mm"], bool(metrics["valid"]),
-                   tuple(metrics["problems"]), dict(metrics["counts"]), _by_seen(metrics.get("accuracy_by_views_seen")))
+                   tuple(metrics["problems"]), dict(metrics["counts"]), _by_seen(metrics.get("accuracy_by_views_seen")),
+                   _by_seen(metrics.get("completeness_by_views_seen")))
 
     @classmethod
     def parse(cls, data: object, where: str) -> Chamfer:
@@ -83,7 +85,8 @@ class Chamfer:
         nums = {k: _number(data, k, where, finite=False, optional=not valid)
                 for k in ("accuracy_mm", "completeness_mm", "overall_mm")}
         return cls(**{k: _nan(v) for k, v in nums.items()}, valid=bool(valid), problems=tuple(data.get("problems", ())),
-                   counts=dict(data.get("counts", {})), accuracy_by_views_seen=_by_seen(data.get("accuracy_by_views_seen")))
+                   counts=dict(data.get("counts", {})), accuracy_by_views_seen=_by_seen(data.get("accuracy_by_views_seen")),
+                   completeness_by_views_seen=_by_seen(data.get("completeness_by_views_seen")))
 
     def figures(self, where: str) -> dict[str, float]:
         """``overall``, ``accuracy``, ``completeness`` (mm), all finite, else an error naming ``where``."""
@@ -106,9 +109,10 @@ class Chamfer:
         out = {"accuracy_mm": _json_number(self.accuracy_mm), "completeness_mm": _json_number(self.completeness_mm),
                "overall_mm": _json_number(self.overall_mm), "valid": self.valid, "problems": list(self.problems),
                "counts": self.counts}
-        if self.accuracy_by_views_seen is not None:
-            out["accuracy_by_views_seen"] = {g: {k: _json_number(v) for k, v in r.items()}
-                                             for g, r in self.accuracy_by_views_seen.items()}
+        for key in ("accuracy_by_views_seen", "completeness_by_views_seen"):
+            groups = getattr(self, key)
+            if groups is not None:
+                out[key] = {g: {k: _json_number(v) for k, v in r.items()} for g, r in groups.items()}
         return out
 
 

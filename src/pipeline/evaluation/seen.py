@@ -1,4 +1,4 @@
-"""Accuracy split by how many input views see the surface a mesh point stands for.
+"""Accuracy and completeness split by how many input views see the surface.
 
 A mesh point ``p`` is charged its distance to the nearest ground-truth point ``q`` (DTU
 accuracy); here ``q`` is also asked which input views see it: ``q`` projects inside the
@@ -7,7 +7,10 @@ the camera more than ``tol_mm`` before it. Points whose ``q`` is seen by >= 2 vi
 surface the views triangulate; by 1 view, surface only that view's photometric loss (and the
 priors) can place; by none, surface the method invented (or the far side of a thin part).
 Accuracy that worsens on the ">= 2" part is drift of well-seen surface, not a guess at
-unseen surface. Needs the GT mesh (synthetic scenes), world mm.
+unseen surface. Completeness splits the same way over the GT points themselves: a GT point
+seen by >= 2 views that is far from the mesh is a hole in surface the views triangulate; one
+seen by none is surface only invention can cover (the 3-view limit leaves it uncovered too).
+Needs the GT mesh (synthetic scenes), world mm.
 """
 from __future__ import annotations
 
@@ -67,12 +70,32 @@ def accuracy_by_views_seen(data_mm: np.ndarray, gt_points_mm: np.ndarray, gt_ver
         return {g: {"fraction": math.nan, "accuracy_mm": math.nan} for g in GROUPS}
     dist, nearest = cKDTree(gt_points_mm).query(data_mm, k=1, workers=-1)
     seen = views_seeing(gt_points_mm[nearest], gt_vertices_mm, gt_triangles, views)
+    return _split(dist, seen, max_dist_mm, "accuracy_mm")
+
+
+def completeness_by_views_seen(gt_points_mm: np.ndarray, distance_mm: np.ndarray, gt_vertices_mm: np.ndarray,
+                               gt_triangles: np.ndarray, views: list[InputView], max_dist_mm: float) -> dict:
+    """Completeness split by :func:`views_seeing` of the GT points themselves:
+    ``distance_mm[i]`` is GT point ``i``'s distance to the mesh (``inf`` beyond the search
+    radius). Per group of :data:`GROUPS`: ``fraction`` of the GT points and
+    ``completeness_mm`` (mean distance of those within ``max_dist_mm``, as DTU completeness;
+    NaN for an empty group)."""
+    if len(gt_points_mm) != len(distance_mm):
+        raise ValueError(f"completeness_by_views_seen: {len(gt_points_mm)} GT points but {len(distance_mm)} distances")
+    if not len(gt_points_mm):
+        return {g: {"fraction": math.nan, "completeness_mm": math.nan} for g in GROUPS}
+    seen = views_seeing(gt_points_mm, gt_vertices_mm, gt_triangles, views)
+    return _split(np.asarray(distance_mm, np.float64), seen, max_dist_mm, "completeness_mm")
+
+
+def _split(dist: np.ndarray, seen: np.ndarray, max_dist_mm: float, key: str) -> dict:
+    """Per group of :data:`GROUPS`: the share of ``dist`` in it and its mean below ``max_dist_mm``."""
     groups = {"2+": seen >= 2, "1": seen == 1, "0": seen == 0}
     out = {}
     for g in GROUPS:
         d = dist[groups[g]]
         d = d[d < max_dist_mm]
-        out[g] = {"fraction": float(groups[g].mean()), "accuracy_mm": float(d.mean()) if len(d) else math.nan}
+        out[g] = {"fraction": float(groups[g].mean()), key: float(d.mean()) if len(d) else math.nan}
     return out
 
 

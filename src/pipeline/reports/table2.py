@@ -58,8 +58,10 @@ def _cell(path: Path, chamfer: str) -> dict:
         data = data[k]
     c = Chamfer.parse(data, f"{path}: {chamfer}")
     seen2 = (c.accuracy_by_views_seen or {}).get("2+") or {}
+    gt_seen = c.completeness_by_views_seen or {}
     return {**c.figures(f"{path}: {chamfer}"), "covered": c.covered_fraction(f"{path}: {chamfer}"),
-            "seen2": _finite(seen2.get("accuracy_mm")), "seen2_fraction": _finite(seen2.get("fraction"))}
+            "seen2": _finite(seen2.get("accuracy_mm")), "seen2_fraction": _finite(seen2.get("fraction")),
+            **{f"comp_seen{g}": _finite((gt_seen.get(g) or {}).get("completeness_mm")) for g in ("2+", "1", "0")}}
 
 
 def _finite(x) -> float:
@@ -84,7 +86,7 @@ def _row(row: str, flags: dict, runs: list[dict[str, dict]], scenes: list[str]) 
 
     scene_mean = [avg([run[s]["overall"] for s in scenes]) for run in runs]
     side = {k: {**{s: avg([run[s][k] for run in runs]) for s in scenes}}
-            for k in ("accuracy", "completeness", "seen2", "seen2_fraction")}
+            for k in ("accuracy", "completeness", "seen2", "seen2_fraction", "comp_seen2+", "comp_seen1", "comp_seen0")}
     for k in side:
         side[k]["mean"] = avg([side[k][s] for s in scenes])
     return {"row": row, **flags, **{s: avg([run[s]["overall"] for run in runs]) for s in scenes},
@@ -181,6 +183,17 @@ def markdown(rows: list[dict], scenes: list[str], commit: str, published: list[d
             continue
         lines.append(f"| {r['row']} | " + " | ".join(f"{r['seen2'][s]:.3f} ({100 * r['seen2_fraction'][s]:.0f}%)"
                                                      for s in scenes) + f" | {r['seen2']['mean']:.3f} |")
+    lines += ["", "**Completeness by how many input views see the GT surface** (mm; >= 2 / 1 / none): GT "
+              "points far from the mesh where >= 2 views see them are holes in triangulated surface; where one "
+              "view sees them, surface one view's photometric loss must place; where none does, surface only "
+              "invention covers (the 3-view limit's figure there is what leaving it out costs).", "",
+              *_header(["row", *scenes, "mean"])]
+    for r in rows:
+        groups = ("comp_seen2+", "comp_seen1", "comp_seen0")
+        if not all(math.isfinite(r[g][s]) for g in groups for s in scenes):
+            continue
+        lines.append(f"| {r['row']} | " + " | ".join(" / ".join(f"{r[g][s]:.2f}" for g in groups)
+                                                     for s in (*scenes, "mean")) + " |")
     lines += ["", "**How much of each object those figures cover**: the fraction of ground-truth points "
               "within `evaluate.max_dist_mm` of the mesh. The DTU protocol leaves the others out of "
               "completeness, so a mesh that omits a region it cannot reconstruct (the classical "
