@@ -267,6 +267,10 @@ def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundle
     report = run_limit(relief, scene, tmp_path / "limit", EvaluateConfig(), [23, 24, 33])
     c = report["chamfer"]
     assert c["accuracy_mm"] < 0.2 < c["completeness_mm"] and 0 < report["gt_area_seen_fraction"] < 1
+    # What the limit leaves uncovered is what no input view sees (docs/evaluation.md).
+    by_gt = c["completeness_by_views_seen"]
+    assert by_gt["2+"]["completeness_mm"] < 0.2 < by_gt["0"]["completeness_mm"]
+    assert c["accuracy_by_views_seen"]["2+"]["accuracy_mm"] < 0.2
     assert gt.read_mesh(tmp_path / "limit" / "mesh.ply")[1].shape == F3.shape
     with pytest.raises(SceneError, match="not a synthetic scene"):
         limit_mesh(bundled_scan, [23, 24, 33])

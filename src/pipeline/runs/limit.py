@@ -10,7 +10,7 @@ from pipeline import atomic
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.data import dtu
 from pipeline.data.scene import SceneError
-from pipeline.evaluation import dtu_eval, gt
+from pipeline.evaluation import dtu_eval, gt, seen
 from pipeline.synth.limit import limit_mesh, mesh_area_mm2
 
 
@@ -20,8 +20,10 @@ def limit_chamfer(mesh: tuple[np.ndarray, np.ndarray], scene_dir: str | Path, gt
     (``evaluate.cull_views`` of the prepared ``scene_dir``)."""
     ground = gt.read_ground_truth(gt_dir, dtu.read_meta(Path(scene_dir)).get("scan_id"))
     cull = dtu_eval.load_cull_views(scene_dir, cfg.cull_views, views)
-    m = dtu_eval.evaluate_mesh(mesh[0], mesh[1], ground, cfg, views=cull, log=log, name="3-view limit")
-    return {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems", "counts")}
+    m = dtu_eval.evaluate_mesh(mesh[0], mesh[1], ground, cfg, views=cull, log=log, name="3-view limit",
+                               seen_views=seen.load_input_views(scene_dir, views))
+    return {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems", "counts",
+                              "accuracy_by_views_seen", "completeness_by_views_seen")}
 
 
 def run_limit(synth_dir: str | Path, scene_dir: str | Path, out_dir: str | Path, cfg: EvaluateConfig,
