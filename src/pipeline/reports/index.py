@@ -41,16 +41,14 @@ def scene_section(name: str, entry: dict, metrics: SceneMetrics, reports: Path) 
                   f"| accuracy (mesh -> GT, mean) | {_fmt(c.accuracy_mm, 3)} |",
                   f"| completeness (GT -> mesh, mean) | {_fmt(c.completeness_mm, 3)} |",
                   f"| overall = (accuracy + completeness) / 2 | {_fmt(c.overall_mm, 3)} |"]
-        for group, label in (("2+", "seen by >= 2 input views"), ("1", "seen by 1 input view"), ("0", "seen by none")):
-            r = (c.accuracy_by_views_seen or {}).get(group)
-            if r is not None:
-                lines.append(f"| accuracy on surface {label} ({100 * r['fraction']:.1f}% of the mesh) | "
-                             f"{_fmt(r['accuracy_mm'], 3)} |")
-        for group, label in (("2+", "seen by >= 2 input views"), ("1", "seen by 1 input view"), ("0", "seen by none")):
-            r = (c.completeness_by_views_seen or {}).get(group)
-            if r is not None:
-                lines.append(f"| completeness on GT surface {label} ({100 * r['fraction']:.1f}% of the GT points) | "
-                             f"{_fmt(r['completeness_mm'], 3)} |")
+        for split, key, what, share in ((c.accuracy_by_views_seen, "accuracy_mm", "accuracy on surface", "the mesh"),
+                                        (c.completeness_by_views_seen, "completeness_mm", "completeness on GT surface",
+                                         "the GT points")):
+            for group, label in (("2+", "seen by >= 2 input views"), ("1", "seen by 1 input view"),
+                                 ("0", "seen by none")):
+                r = (split or {}).get(group)
+                if r is not None:
+                    lines.append(f"| {what} {label} ({100 * r['fraction']:.1f}% of {share}) | {_fmt(r[key], 3)} |")
         e = metrics.input_depth_error
         if e is not None:
             lines.append(f"| depth the mesh is fused from, at the input views, against the GT's: median abs error "
