@@ -22,7 +22,7 @@ class MVSConfig:
     refine_step: float = 0.25  # ... in steps of this fraction of a plane step
     warn_below_matched: float = 0.15  # warn when a view's matched fraction of mask pixels is below this
     warn_below_consistent: float = 0.10  # ... or its geometrically consistent fraction
-    fill_width: int = 200  # width (px) of the absolute-difference sweep where NCC has no match (0: off)
+    fill_width: int = 400  # width (px) of the absolute-difference sweep where NCC has no match (0: off)
     fill_window: int = 7  # its window side, coarse pixels (odd)
     fill_max_rms: float = 0.05  # its winner's RMS grey difference (object-mean units) above this -> invalid
     fill_min_std: float = 0.002  # its window's grey std (object-mean units) below this -> one grey, invalid
