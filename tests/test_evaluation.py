@@ -384,3 +384,75 @@ def test_cli_errors_name_the_problem(tmp_path, capsys):
     assert main(["evaluate", "--mesh", str(tmp_path / "points_only.ply"), "--gt", str(tmp_path), *args]) == 1
     assert "ObsMask" in capsys.readouterr().err
     assert not out.exists()
+
+
+def upper_half(V, F, N=None):
+    """The sphere's triangles whose centroid is above its centre in y (a hemisphere)."""
+    keep = V[F].mean(axis=1)[:, 1] > CENTRE[1]
+    return V, F[keep]
+
+
+def test_split_by_reference_separates_the_shared_part():
+    from pipeline.evaluation.coverage import split_by_reference
+
+    V, F, _ = sphere()
+    ref_V, ref_F = upper_half(V, F)
+    parts = split_by_reference(V, F, ref_V, ref_F, within_mm=0.5)
+    assert len(parts["shared"][1]) + len(parts["added"][1]) == len(F)
+    for Vp, Fp in parts.values():
+        assert Fp.max() == len(Vp) - 1  # only the vertices the part uses
+    # The reference's own triangles, and those across the cut whose centroid is within 0.5 mm of it.
+    shared_y = parts["shared"][0][parts["shared"][1]].mean(axis=1)[:, 1]
+    added_y = parts["added"][0][parts["added"][1]].mean(axis=1)[:, 1]
+    assert len(ref_F) <= len(shared_y) < len(ref_F) * 1.05
+    assert (shared_y > CENTRE[1] - 0.5).all() and (added_y < CENTRE[1]).all()
+
+
+def test_accuracy_by_reference_scores_each_part_as_a_mesh(ground_truth):
+    """A mesh equal to the GT above the reference's cut and 2 mm outside it below: the shared
+    part scores ~0, the added part ~2, and the parts' weighted mean is the whole's accuracy."""
+    from pipeline.evaluation.coverage import accuracy_by_reference
+
+    V, F, N = sphere()
+    below = V[:, 1] < CENTRE[1] - 5.0  # clear of the cut, so no shared triangle moves
+    moved = V + 2.0 * N * below[:, None]
+    ref_V, ref_F = upper_half(V, F)
+    out = accuracy_by_reference(moved, F, ref_V, ref_F, ground_truth, NO_CULL, within_mm=0.5, log=None)
+    assert out["shared"]["accuracy_mm"] < 0.1
+    assert out["added"]["accuracy_mm"] == pytest.approx(2.0, rel=0.15)
+    assert out["shared"]["fraction"] + out["added"]["fraction"] == pytest.approx(1.0)
+    assert 0.3 < out["shared"]["fraction"] < 0.7
+    whole = dtu_eval.evaluate_mesh(moved, F, ground_truth, NO_CULL, log=None)["accuracy_mm"]
+    parts = sum(out[p]["fraction"] * out[p]["accuracy_mm"] for p in ("shared", "added"))
+    assert parts == pytest.approx(whole, rel=0.05)
+
+    # A reference covering everything leaves nothing added: NaN, not an error.
+    out = accuracy_by_reference(V, F, V, F, ground_truth, NO_CULL, log=None)
+    assert out["shared"]["fraction"] == 1.0 and np.isnan(out["added"]["accuracy_mm"])
+
+
+def test_accuracy_by_reference_rejects_bad_input(ground_truth):
+    from pipeline.evaluation.coverage import accuracy_by_reference
+
+    V, F, _ = sphere()
+    with pytest.raises(MeshError, match="reference mesh"):
+        accuracy_by_reference(V, F, np.zeros((0, 3)), np.zeros((0, 3), int), ground_truth, NO_CULL, log=None)
+    with pytest.raises(ValueError, match="within_mm"):
+        accuracy_by_reference(V, F, V, F, ground_truth, NO_CULL, within_mm=0.0, log=None)
+
+
+def test_cli_accuracy_by_mesh(tmp_path, capsys):
+    V, F, N = sphere()
+    write_synthetic_scene(tmp_path / "scene", V, F)
+    gtmod.write_ply_mesh(tmp_path / "mesh.ply", V + 1.0 * N, F)
+    gtmod.write_ply_mesh(tmp_path / "ref.ply", *upper_half(V + 1.0 * N, F))
+    out = tmp_path / "m.json"
+    assert main(["evaluate", "--mesh", str(tmp_path / "mesh.ply"), "--scene", str(tmp_path / "scene"), "--cull", "none",
+                 "--accuracy-by-mesh", str(tmp_path / "ref.ply"), "--out", str(out)]) == 0
+    m = json.loads(out.read_text())["accuracy_by_reference"]
+    assert m["reference"] == str(tmp_path / "ref.ply") and m["within_mm"] == 1.0
+    assert m["shared"]["accuracy_mm"] == pytest.approx(1.0, rel=0.15) == m["added"]["accuracy_mm"]
+    assert "accuracy by reference coverage" in capsys.readouterr().out
+    assert main(["evaluate", "--mesh", str(tmp_path / "mesh.ply"), "--scene", str(tmp_path / "scene"),
+                 "--accuracy-by-mesh", str(tmp_path / "ref.ply"), "--within-mm", "-1", "--out", str(out)]) != 0
+    assert "--within-mm" in capsys.readouterr().err

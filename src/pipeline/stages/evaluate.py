@@ -6,6 +6,7 @@ docs/evaluation.md). The mesh must be in the DTU world frame, in millimetres.
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -14,8 +15,8 @@ from pipeline.config.data import DataConfig
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.config.params import load_params, section
 from pipeline.data import dtu
-from pipeline.errors import MissingInputError
-from pipeline.evaluation import dtu_eval, gt
+from pipeline.errors import InputError, MissingInputError
+from pipeline.evaluation import coverage, dtu_eval, gt
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -29,11 +30,17 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--views", type=int, nargs="+", default=None, help="input views (default: params data.views)")
     p.add_argument("--seed", type=int, default=0, help="seed of the downsampling order")
     p.add_argument("--params", default=None, help="params.yaml to read `evaluate` and `data` from")
+    p.add_argument("--accuracy-by-mesh", default=None, metavar="REFERENCE",
+                   help="also split the accuracy by a reference mesh (world mm): on the surface within "
+                        "--within-mm of it and on the surface only this mesh has (docs/evaluation.md)")
+    p.add_argument("--within-mm", type=float, default=1.0, help="distance that counts as the reference's surface")
     p.add_argument("--out", required=True, help="metrics JSON to write")
 
 
 def run(args: argparse.Namespace) -> int:
-    atomic.check_output_file(args.out, inputs=(args.mesh,))
+    atomic.check_output_file(args.out, inputs=(args.mesh, args.accuracy_by_mesh))
+    if not (args.within_mm > 0 and math.isfinite(args.within_mm)):
+        raise InputError(f"--within-mm must be a positive distance in mm, got {args.within_mm}")
     params = load_params(args.params)
     cfg = section(EvaluateConfig, "evaluate", params, {"cull_views": args.cull})
     views = section(DataConfig, "data", params, {"views": args.views}).views
@@ -50,6 +57,10 @@ def run(args: argparse.Namespace) -> int:
     metrics = dtu_eval.evaluate_mesh(vertices, triangles, ground, cfg, views=cull, seed=args.seed,
                                      log=lambda m: print(m, flush=True), name=str(args.mesh))
     metrics.update(mesh=str(args.mesh), scene=str(scene), gt=str(ground.root))
+    if args.accuracy_by_mesh:
+        metrics["accuracy_by_reference"] = {"reference": str(args.accuracy_by_mesh), **coverage.accuracy_by_reference(
+            vertices, triangles, *gt.read_mesh(args.accuracy_by_mesh), ground, cfg, views=cull, seed=args.seed,
+            within_mm=args.within_mm, log=lambda m: print(m, flush=True))}
     dtu_eval.write_metrics(args.out, metrics)
     print(f"[evaluate] wrote {args.out}", flush=True)
     if not metrics["valid"]:
