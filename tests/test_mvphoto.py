@@ -16,6 +16,7 @@ from pipeline.mvphoto import (
     best_source_ncc,
     multiview_consistency,
     plane_homographies,
+    reference_pixels,
 )
 
 
@@ -583,3 +584,59 @@ def test_best_source_ncc_ignores_sources_that_do_not_see_the_point(scene):
     farther = best_source_ncc(*args, scene.sources(True, [1.1 * D for D in scene.depth_src])).numpy()
     assert np.array_equal(np.isnan(farther), np.isnan(seen) | ~np.isfinite(farther))
     assert np.isfinite(farther).mean() > 0.6  # a source seeing past the point still judges it
+
+
+def _slow_reference_pixels(surface, normal, K, max_incidence_deg):
+    """Pixel by pixel: on the surface, and the angle between the normal and the ray at most
+    max_incidence_deg."""
+    h, w = surface.shape
+    Kinv = np.linalg.inv(K.numpy().astype(np.float64))
+    keep = np.zeros((h, w), bool)
+    for y in range(h):
+        for x in range(w):
+            if surface[y, x]:
+                ray = Kinv @ np.array([x, y, 1.0])
+                n = normal[y, x].numpy().astype(np.float64)
+                cos = abs(n @ ray) / (np.linalg.norm(n) * np.linalg.norm(ray))
+                keep[y, x] = math.degrees(math.acos(min(cos, 1.0))) <= max_incidence_deg + 1e-9
+    return keep
+
+
+@pytest.mark.parametrize("max_deg", [30.0, 60.0, 70.0, 89.0])
+def test_reference_pixels_match_slow_reference(max_deg):
+    g = torch.Generator().manual_seed(3)
+    h, w = 30, 40
+    surface = torch.rand(h, w, generator=g) > 0.2
+    normal = torch.randn(h, w, 3, generator=g, dtype=torch.float64)
+    K = torch.tensor([[50.0, 0, 19.5], [0, 50.0, 14.5], [0, 0, 1]], dtype=torch.float64)
+    got = reference_pixels(surface, normal, K, max_deg)
+    want = _slow_reference_pixels(surface, normal, K, max_deg)
+    assert got.dtype == torch.bool and got.shape == (h, w)
+    assert (got.numpy() == want).all()
+    assert 0 < got.sum() < surface.sum() and not (got & ~surface).any()
+    # Either sign of the normal, and its length, do not matter.
+    assert torch.equal(reference_pixels(surface, -3.0 * normal, K, max_deg), got)
+
+
+def test_reference_pixels_at_90_degrees_keep_the_surface():
+    surface = torch.rand(10, 12, generator=torch.Generator().manual_seed(0)) > 0.5
+    normal = torch.randn(10, 12, 3)
+    K = torch.tensor([[20.0, 0, 6], [0, 20.0, 5], [0, 0, 1]])
+    assert torch.equal(reference_pixels(surface, normal, K, 90.0), surface)
+
+
+def test_reference_pixels_cut_a_sphere_rim_at_the_angle():
+    """A sphere seen head-on: the kept pixels are the disc where the surface is seen within the
+    angle, i.e. image radius <= R sin(angle) for a distant sphere (orthographic limit)."""
+    h = w = 201
+    f, dist, R = 1.0e5, 1.0e4, 1.0  # nearly orthographic: the sphere spans ~20 px radius
+    K = torch.tensor([[f, 0, 100.0], [0, f, 100.0], [0, 0, 1]], dtype=torch.float64)
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    px, py = (xs - 100) * dist / f, (ys - 100) * dist / f
+    r2 = px ** 2 + py ** 2
+    surface = r2 < R ** 2
+    normal = torch.stack([px, py, -torch.sqrt((R ** 2 - r2).clamp_min(0))], -1)  # outward, towards the camera
+    for deg in (40.0, 70.0):
+        kept = reference_pixels(surface, normal, K, deg)
+        radius = torch.sqrt(r2[kept]).max().item()
+        assert abs(radius - R * math.sin(math.radians(deg))) < 2 * dist / f  # within two pixels

@@ -247,6 +247,7 @@ def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundle
     whole GT mesh back, three give a strict subset lying on it, and more views never see less."""
     from pipeline.config.data import DataConfig
     from pipeline.config.evaluate import EvaluateConfig
+    from pipeline.config.mesh import MeshConfig
     from pipeline.data.prepare import prepare_scene
     from pipeline.data.scene import SceneError
     from pipeline.evaluation import gt
@@ -264,7 +265,7 @@ def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundle
     assert distance_to_mesh(V3, V_gt, F_gt).max() < 1e-3
     scene = tmp_path / "scene"
     prepare_scene(relief, scene, DataConfig(views=[23, 24, 33], width=W, height=H))
-    report = run_limit(relief, scene, tmp_path / "limit", EvaluateConfig(), [23, 24, 33])
+    report = run_limit(relief, scene, tmp_path / "limit", EvaluateConfig(), MeshConfig(), [23, 24, 33])
     c = report["chamfer"]
     assert c["accuracy_mm"] < 0.2 < c["completeness_mm"] and 0 < report["gt_area_seen_fraction"] < 1
     # What the limit leaves uncovered is what no input view sees (docs/evaluation.md).
@@ -272,6 +273,13 @@ def test_the_3_view_limit_is_the_gt_the_input_views_see(relief, tmp_path, bundle
     assert by_gt["2+"]["completeness_mm"] < 0.2 < by_gt["0"]["completeness_mm"]
     assert c["accuracy_by_views_seen"]["2+"]["accuracy_mm"] < 0.2
     assert gt.read_mesh(tmp_path / "limit" / "mesh.ply")[1].shape == F3.shape
+    # The meshing fed exact depth: on the GT (within the TSDF's voxel), never more complete
+    # than what the views see.
+    e = report["exact_depth"]
+    V_e, F_e = gt.read_mesh(tmp_path / "limit" / "exact_depth_mesh.ply")
+    voxel_mm = MeshConfig().sizes_mm(float(dtu.load_cameras(relief).norm_to_world[0, 0]))[0]
+    assert len(F_e) > 0 and np.median(distance_to_mesh(V_e, V_gt, F_gt)) < 0.4 * voxel_mm
+    assert e["accuracy_mm"] < 0.5 * voxel_mm and e["completeness_mm"] > c["completeness_mm"] - 0.05
     with pytest.raises(SceneError, match="not a synthetic scene"):
         limit_mesh(bundled_scan, [23, 24, 33])
 

@@ -67,15 +67,17 @@ def _write(path, data):
 
 
 def test_table2_rows_components_and_mean(tmp_path):
-    from pipeline.reports.table2 import FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown, read_published_ablation
+    from pipeline.reports.table2 import (EXACT_DEPTH, FULL, LIMIT, MVS_TSDF, build_table2, csv_text, markdown,
+                                         read_published_ablation)
 
     scenes = ["a", "b"]
     def chamfer(overall, acc, used):
         return {"overall_mm": overall, "accuracy_mm": acc, "completeness_mm": 2 * overall - acc,
                 "counts": {"completeness_used": used, "gt_above_plane": 200}}
 
-    for s, (lim, mvs, plain, full) in {"a": (0.5, 3.0, 5.0, 1.0), "b": (1.5, 2.0, 7.0, 2.0)}.items():
-        _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(lim, 0.0, 120)})
+    for s, (lim, exact, mvs, plain, full) in {"a": (0.5, 0.6, 3.0, 5.0, 1.0), "b": (1.5, 1.0, 2.0, 7.0, 2.0)}.items():
+        _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(lim, 0.0, 120),
+                                                   "exact_depth": chamfer(exact, 0.1, 110)})
         _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": chamfer(mvs, 0.5, 50)}})
         _write(tmp_path / "variants" / "plain" / f"{s}.json", {"chamfer": chamfer(plain, 2.0, 100)})
         _write(tmp_path / "metrics" / f"{s}.json", {"chamfer": {**chamfer(full, 0.25, 150), "accuracy_by_views_seen": {
@@ -86,24 +88,26 @@ def test_table2_rows_components_and_mean(tmp_path):
     ablation = AblationConfig(**BASE["ablation"])
     rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
                         tmp_path / "baseline", tmp_path / "limit")
-    assert [r["row"] for r in rows] == [LIMIT, MVS_TSDF, "plain", FULL]
-    assert [r["mean"] for r in rows] == [1.0, 2.5, 6.0, 1.5]
+    assert [r["row"] for r in rows] == [LIMIT, EXACT_DEPTH, MVS_TSDF, "plain", FULL]
+    assert [r["mean"] for r in rows] == pytest.approx([1.0, 0.8, 2.5, 6.0, 1.5])
     assert rows[0]["accuracy"] == {"a": 0.0, "b": 0.0, "mean": 0.0}
-    assert rows[3]["completeness"] == {"a": 1.75, "b": 3.75, "mean": 2.75}
-    assert (rows[0]["dense_init"], rows[1]["gcf"]) == (None, None)
-    assert (rows[2]["dense_init"], rows[2]["gcf"], rows[2]["nor"]) == (False, False, False)
-    assert (rows[3]["dense_init"], rows[3]["gcf"], rows[3]["nor"]) == (True, True, True)
-    assert (rows[2]["photo_reset"], rows[3]["photo_reset"]) == (False, True)
-    assert (rows[2]["init_depth_mesh"], rows[3]["init_depth_mesh"]) == (False, True)
-    assert (rows[2]["ncc_support"], rows[3]["ncc_support"]) == (False, False)
-    assert [r["covered"] for r in rows][1:] == [{"a": 0.25, "b": 0.25}, {"a": 0.5, "b": 0.5}, {"a": 0.75, "b": 0.75}]
-    assert csv_text(rows, scenes).splitlines()[3] == ("plain,0,0,0,0,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000,"
+    assert rows[1]["accuracy"] == pytest.approx({"a": 0.1, "b": 0.1, "mean": 0.1})
+    assert rows[4]["completeness"] == {"a": 1.75, "b": 3.75, "mean": 2.75}
+    assert (rows[0]["dense_init"], rows[1]["mv"], rows[2]["gcf"]) == (None, None, None)
+    assert (rows[3]["dense_init"], rows[3]["gcf"], rows[3]["nor"]) == (False, False, False)
+    assert (rows[4]["dense_init"], rows[4]["gcf"], rows[4]["nor"]) == (True, True, True)
+    assert (rows[3]["photo_reset"], rows[4]["photo_reset"]) == (False, True)
+    assert (rows[3]["init_depth_mesh"], rows[4]["init_depth_mesh"]) == (False, True)
+    assert (rows[3]["ncc_support"], rows[4]["ncc_support"]) == (False, False)
+    assert [r["covered"] for r in rows][2:] == [{"a": 0.25, "b": 0.25}, {"a": 0.5, "b": 0.5}, {"a": 0.75, "b": 0.75}]
+    assert csv_text(rows, scenes).splitlines()[4] == ("plain,0,0,0,0,0,0,0,5.0000,7.0000,6.0000,0.5000,0.5000,"
                                                      "2.0000,2.0000,2.0000,8.0000,12.0000,10.0000,1,"
                                                      "0.0000,0.0000,0.0000")
     md = markdown(rows, scenes, "abc")
-    # The limit is the yardstick, not a row to win: the best method row is in bold.
+    # The yardsticks are not rows to win, even the lower exact-depth one: the best method row is in bold.
     assert "| full method | yes | yes | yes | no | yes | no | yes | 1.000 | 2.000 | **1.500** | 1 |" in md
     assert f"| {LIMIT} | — | — | — | — | — | — | — | 0.500 | 1.500 | 1.000 | 1 |" in md
+    assert f"| {EXACT_DEPTH} | — | — | — | — | — | — | — | 0.600 | 1.000 | 0.800 | 1 |" in md
     assert "| full method | 0.250 / 1.750 | 0.250 / 3.750 | 0.250 / 2.750 |" in md
     assert f"| {MVS_TSDF} | 0.25 | 0.25 |" in md
     seen2 = md.split("**Accuracy on surface seen by >= 2 input views**")[1].split("**How much")[0]
@@ -151,13 +155,13 @@ def test_table2_seed_replicates_give_mean_and_spread(tmp_path):
         for s, overall in zip(scenes, per_scene):
             _write(tmp_path / where / f"{s}.json", {"chamfer": chamfer(overall)})
     for s in scenes:
-        _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(0.5)})
+        _write(tmp_path / "limit" / f"{s}.json", {"chamfer": chamfer(0.5), "exact_depth": chamfer(0.7)})
         _write(tmp_path / "baseline" / f"{s}.json", {"evaluate": {"metrics": chamfer(3.0)}})
     ablation = AblationConfig(**params["ablation"])
     rows = build_table2(params, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
                         tmp_path / "baseline", tmp_path / "limit")
-    full, plain = rows[-1], rows[2]
-    assert [r["row"] for r in rows][2:] == ["plain", FULL] and (full["seeds"], plain["seeds"]) == (3, 2)
+    full, plain = rows[-1], rows[3]
+    assert [r["row"] for r in rows][3:] == ["plain", FULL] and (full["seeds"], plain["seeds"]) == (3, 2)
     assert full["a"] == pytest.approx(1.0) and full["b"] == pytest.approx(2.2)
     # per-seed means over the scenes: 1.5, 1.6, 1.7 -> mean 1.6, half range 0.1
     assert full["mean"] == pytest.approx(1.6) and full["spread"]["mean"] == pytest.approx(0.1)
@@ -174,8 +178,12 @@ def test_table2_names_a_missing_or_bad_report(tmp_path):
     ablation = AblationConfig(**BASE["ablation"])
     args = (BASE, ["a"], ablation.run, ablation.variants, tmp_path / "m", tmp_path / "v", tmp_path / "b",
             tmp_path / "l")
-    _write(tmp_path / "l" / "a.json", {"chamfer": {"overall_mm": 1.0, "accuracy_mm": 0.0, "completeness_mm": 2.0,
-                                                   "counts": {"completeness_used": 1, "gt_above_plane": 2}}})
+    limit = {"overall_mm": 1.0, "accuracy_mm": 0.0, "completeness_mm": 2.0,
+             "counts": {"completeness_used": 1, "gt_above_plane": 2}}
+    _write(tmp_path / "l" / "a.json", {"chamfer": limit})  # a limit report from before the exact-depth row
+    with pytest.raises(InputError, match=r"l/a\.json: missing `exact_depth`"):
+        build_table2(*args)
+    _write(tmp_path / "l" / "a.json", {"chamfer": limit, "exact_depth": limit})
     with pytest.raises(InputError, match=r"b/a\.json: no report \(file not found; run `dvc repro` first\)"):
         build_table2(*args)
     _write(tmp_path / "b" / "a.json", {"evaluate": {"metrics": {"overall_mm": float("nan")}}})

@@ -295,6 +295,26 @@ def _ncc(ref: _ReferencePatches, grey: torch.Tensor, pos: torch.Tensor, valid: t
     return cov / torch.sqrt(ref.var_a * (w * b_c * b_c).sum(-1) + NCC_EPS)
 
 
+def reference_pixels(surface: torch.Tensor, normal: torch.Tensor, K_train: torch.Tensor,
+                     max_incidence_deg: float) -> torch.Tensor:
+    """The ``(h, w)`` bool mask of the ``surface`` pixels whose rendered normal is within
+    ``max_incidence_deg`` of the ray back to the camera: L_mv's reference pixels.
+
+    ``surface`` (h, w) bool: the rendered surface at the training size; ``normal`` (h, w, 3)
+    its camera-frame normals (any length, either sign); ``K_train`` their intrinsics (integer
+    pixel centres). At grazing incidence the plane's homography swings with the smallest tilt
+    and the patch is the object's rim, where the views see different silhouettes: on
+    synth_textureless, L_mv from every pixel pulled the dome's rim behind the truth
+    (docs/optimize.md)."""
+    if max_incidence_deg >= 90.0:
+        return surface.clone()
+    h, w = surface.shape
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=normal.dtype), torch.arange(w, dtype=normal.dtype), indexing="ij")
+    rays = torch.stack([xs, ys, torch.ones_like(xs)], -1) @ torch.linalg.inv(_as(K_train, normal)).t()
+    cos = (F.normalize(normal.detach(), dim=-1) * F.normalize(rays, dim=-1)).sum(-1).abs()
+    return surface & (cos >= math.cos(math.radians(max_incidence_deg)))
+
+
 def multiview_consistency(
     depth: torch.Tensor,
     normal: torch.Tensor,

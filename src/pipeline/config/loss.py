@@ -36,6 +36,9 @@ class LossConfig:
     # Adaptive support weights of L_mv's and the photo reset's NCC: patch pixels weighted by
     # exp(-|grey - centre grey| / mv_ncc_gamma) (grey in [0, 1]). 0: plain NCC (PGSR).
     mv_ncc_gamma: float = 0.0
+    # L_mv's reference pixels: only where the rendered normal is within this angle of the ray
+    # to the camera (90: every surface pixel, PGSR's).
+    mv_max_incidence_deg: float = 70.0
     # L_smooth: edge-aware smoothness of the rendered normals (neighbouring surface pixels'
     # unit normals alike where the image is flat: weight exp(-smooth_gamma |grad I|)), from
     # start.mv. 0: off.
@@ -51,6 +54,8 @@ class LossConfig:
             raise ConfigError(f"loss.mv_ncc_gamma must be a finite number >= 0 (0: plain NCC), got {self.mv_ncc_gamma}")
         if min(self.lambda_mv, self.lambda_mvgeo, self.mv_min_patch_std) < 0 or self.mv_max_fb_px <= 0:
             raise ConfigError("loss.lambda_mv, lambda_mvgeo and mv_min_patch_std must be >= 0 and mv_max_fb_px > 0")
+        if not 0.0 < self.mv_max_incidence_deg <= 90.0:
+            raise ConfigError(f"loss.mv_max_incidence_deg must be in (0, 90], got {self.mv_max_incidence_deg}")
         if self.lambda_mvs < 0 or not 0.0 <= self.mvs_final:
             raise ConfigError(f"loss.lambda_mvs and loss.mvs_final must be >= 0, got {self.lambda_mvs}, {self.mvs_final}")
         if not 0.0 < self.gcf_max_dissimilarity <= 2.0:

@@ -35,7 +35,7 @@ from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.errors import ConfigError, Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
-from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency
+from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency, reference_pixels
 from pipeline.optimize import ops, terms
 from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
@@ -306,10 +306,11 @@ class Trainer:
     def _multiview(self, i: int, K_train: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
                    surface: torch.Tensor) -> dict[str, torch.Tensor]:
         """L_mv's photometric and geometric parts on a seeded random subset of the ``surface``
-        pixels of view ``i`` (rendered ``depth``, ``normal`` at intrinsics ``K_train``), the
-        other input views as sources (:mod:`pipeline.mvphoto`)."""
+        pixels of view ``i`` (rendered ``depth``, ``normal`` at intrinsics ``K_train``) seen
+        within ``loss.mv_max_incidence_deg`` of the ray, the other input views as sources
+        (:mod:`pipeline.mvphoto`)."""
         cfg, lw, views = self.cfg, self.loss, self.views
-        ys, xs = torch.nonzero(surface, as_tuple=True)
+        ys, xs = torch.nonzero(reference_pixels(surface, normal, K_train, lw.mv_max_incidence_deg), as_tuple=True)
         if 0 < cfg.mv_max_points < len(xs):
             pick = torch.randperm(len(xs), generator=self.generator)[: cfg.mv_max_points]
             ys, xs = ys[pick], xs[pick]

@@ -9,6 +9,7 @@ import json
 from pipeline import atomic
 from pipeline.config.data import DataConfig
 from pipeline.config.evaluate import EvaluateConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.config.params import load_params, section
 from pipeline.runs.limit import run_limit
 
@@ -28,10 +29,11 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     views = section(DataConfig, "data", params, {"views": args.views}).views
     report = {"scene": args.name, **run_limit(args.synth_dir, args.scene, args.out_dir,
-                                              section(EvaluateConfig, "evaluate", params), views)}
+                                              section(EvaluateConfig, "evaluate", params),
+                                              section(MeshConfig, "mesh", params), views)}
     atomic.write_text(args.report, json.dumps(report, indent=2, sort_keys=True) + "\n")
     c = report["chamfer"]
     print(f"limit {args.name}: views {views} see {report['gt_area_seen_fraction']:.0%} of the GT area; "
           f"accuracy {c['accuracy_mm']:.3f} / completeness {c['completeness_mm']:.3f} / overall {c['overall_mm']:.3f} mm"
-          f" -> {args.report}")
+          f"; exact depth through the meshing: {report['exact_depth']['overall_mm']:.3f} mm -> {args.report}")
     return 0

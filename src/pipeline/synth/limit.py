@@ -4,6 +4,11 @@ input views see, by the rule that made the ground truth from all 49 views
 camera, nothing of the scene, object or table, in front of it). Scored like any mesh it is
 what a method that reconstructs exactly what the input views see, and invents nothing,
 would score (:mod:`pipeline.runs.limit`, docs/evaluation.md).
+
+Beside it, :func:`exact_depth_mesh`: the mesh stage's meshing fed the exact depth of the
+input views, what the method would score if its rendered depth were perfect. The gap from
+the limit to it is what the meshing costs; the gap from it to the method is what training
+costs.
 """
 from __future__ import annotations
 
@@ -11,8 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.config.mesh import MeshConfig
 from pipeline.data import dtu
-from pipeline.data.scene import SceneError
+from pipeline.data.scene import Scene, SceneError
+from pipeline.evaluation.depth_error import gt_depths_mm
+from pipeline.meshing import tsdf
 from pipeline.synth.render import Renderer
 from pipeline.synth.scenes import build_scene, visible_gt_mesh
 
@@ -39,3 +47,20 @@ def limit_mesh(synth_dir: str | Path, views: list[int]) -> tuple[np.ndarray, np.
 def mesh_area_mm2(vertices: np.ndarray, triangles: np.ndarray) -> float:
     a, b, c = (vertices[triangles[:, k]] for k in range(3))
     return float(np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2)
+
+
+def exact_depth_mesh(gt_vertices_mm: np.ndarray, gt_triangles: np.ndarray, scene: Scene,
+                     cfg: MeshConfig) -> tsdf.Mesh:
+    """The mesh stage's TSDF meshing (:func:`pipeline.meshing.tsdf.fuse_in_region` at ``cfg``'s
+    sizes, region and component rules) of the GT mesh's exact depth (camera z, mm, through
+    the integer pixel centres) at ``scene``'s input views and image size, masked by the
+    scene's masks as the mesh stage masks rendered depth (``cfg.masks``)."""
+    masks = scene.masks if (cfg.masks and scene.masks is not None) else None
+    depths = gt_depths_mm(gt_vertices_mm, gt_triangles, scene.K, scene.world_to_cam, scene.width, scene.height)
+    if masks is not None:
+        depths = np.where(masks, depths, 0.0)
+    if not (depths > 0).any():
+        raise SceneError(f"{scene.source}: the ground truth covers no pixel of the input views")
+    mesh, _, _ = tsdf.fuse_in_region(depths, scene.K, scene.world_to_cam, None, scene.norm_to_world, cfg,
+                                     masked=masks is not None)
+    return mesh
