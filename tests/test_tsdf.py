@@ -213,3 +213,61 @@ def test_a_slanted_plane_fuses_onto_itself(slant_deg):
     signed = mesh.vertices_mm @ n - n @ [0.0, 0.0, z0]
     assert len(signed) > 1000
     assert abs(np.mean(signed)) < 0.02
+
+
+def _plane_depth(slant_deg: float, W: int = 800, H: int = 600, f: float = 1450.0, z0: float = 685.0):
+    """Exact depth of the plane through (0, 0, z0) whose normal is tilted ``slant_deg`` about
+    the camera's y axis, camera at the origin: (K, depth (H, W), unit normal)."""
+    K = np.array([[f, 0.0, (W - 1) / 2], [0.0, f, (H - 1) / 2], [0.0, 0.0, 1.0]])
+    a = np.radians(slant_deg)
+    n = np.array([np.sin(a), 0.0, np.cos(a)])
+    u, v = np.meshgrid(np.arange(W, dtype=np.float64), np.arange(H, dtype=np.float64))
+    rays = np.stack([(u - K[0, 2]) / f, (v - K[1, 2]) / f, np.ones_like(u)], -1)
+    depth = (n @ [0.0, 0.0, z0]) / (rays @ n)
+    return K, np.where(depth > 0, depth, 0.0), n, rays
+
+
+@pytest.mark.parametrize("slant_deg", [60.0, 78.0, 83.0])
+def test_grazing_pixels_follow_the_incidence(slant_deg):
+    """On a plane, a pixel is grazing exactly where the angle between its ray and the normal
+    exceeds the threshold (pixels within 0.05 degrees of it, the border and the plane beyond
+    3 m left out); a pixel without depth never is."""
+    K, depth, n, rays = _plane_depth(slant_deg)
+    incidence = np.degrees(np.arccos(np.abs(rays @ n) / np.linalg.norm(rays, axis=-1)))
+    got = tsdf.grazing_pixels(depth, K, 80.0)
+    inner = np.zeros_like(got)
+    inner[1:-1, 1:-1] = True
+    clear = inner & (np.abs(incidence - 80.0) > 0.05) & (depth > 0) & (depth < 3000.0)
+    assert np.array_equal(got[clear], incidence[clear] > 80.0)
+    assert not got[~inner].any() and not got[depth == 0].any()
+    assert got[clear].any() == (slant_deg > 70.0)  # the 78 and 83 degree planes hold grazing pixels
+    holes = depth.copy()
+    holes[::2] = 0.0  # no pixel has all four neighbours
+    assert not tsdf.grazing_pixels(holes, K, 80.0).any()
+
+
+def test_a_plane_seen_at_grazing_incidence_is_fused(monkeypatch):
+    """A plane seen at 84-86 degrees by one camera (exact depth) fuses into a surface on it;
+    with the grazing pixels at the ordinary truncation (before 2026-11-27) most of it was lost."""
+    K, depth, n, rays = _plane_depth(85.0)
+    incidence = np.degrees(np.arccos(np.abs(rays @ n) / np.linalg.norm(rays, axis=-1)))
+    keep = (np.abs(incidence - 85.0) < 1.0) & (np.abs(np.arange(600)[:, None] - 300) < 150)
+    keep &= (depth > 300.0) & (depth < 1500.0)
+    d = np.where(keep, depth, 0.0)[None]
+    voxel = 0.92
+    pts = depth[keep][:, None] * rays[keep]  # the plane's points the camera sees (camera = world frame)
+
+    def covered(mesh):
+        from scipy.spatial import cKDTree
+        dist, _ = cKDTree(mesh.vertices_mm).query(pts[::13])
+        return float(np.mean(dist < 2 * voxel))
+
+    mesh = tsdf.fuse_depth_maps(d, K[None], np.eye(4)[None], None, voxel, 4 * voxel, 3000.0)
+    signed = mesh.vertices_mm @ n - n @ [0.0, 0.0, 685.0]
+    assert covered(mesh) > 0.8 and np.median(np.abs(signed)) < 0.25 * voxel
+    monkeypatch.setattr(tsdf, "GRAZING_TRUNC_FACTOR", 1.0)
+    try:
+        before = tsdf.fuse_depth_maps(d, K[None], np.eye(4)[None], None, voxel, 4 * voxel, 3000.0)
+        assert covered(before) < 0.5
+    except tsdf.FusionError:
+        pass  # nothing fused at all: lost too

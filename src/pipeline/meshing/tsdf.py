@@ -5,6 +5,15 @@ Units: depth maps are camera z in mm, the grid and the mesh are in world mm. Vox
 truncation sizes come from :class:`~pipeline.config.mesh.MeshConfig` in the normalised frame
 (2DGS on DTU: 0.004 and 0.016), i.e. times the scale_mat radius in mm. Open3D's camera
 model has no skew; the tiny DTU skew (|K[0, 1]| ~ 2e-4 px) is dropped here.
+
+Grazing pixels get a longer truncation. Open3D's projective TSDF skips a voxel more than the
+truncation behind the depth *along the ray*; behind a surface seen at incidence theta, the
+voxels within one voxel of it along its normal lie 1/cos(theta) further along the ray, so at
+grazing incidence no voxel behind the surface is written and no zero crossing forms: with
+exact depth, the mesh missed most surface seen beyond 80 degrees (docs/evaluation.md). A
+pixel whose surface (the normal of its depth map's neighbourhood) is seen beyond
+``GRAZING_INCIDENCE_DEG`` is fused with ``GRAZING_TRUNC_FACTOR`` x the truncation, every other
+pixel with the truncation itself, so thin parts seen face-on are not fattened.
 """
 from __future__ import annotations
 
@@ -19,6 +28,11 @@ from pipeline.data.dtu import load_scene
 from pipeline.errors import InputError
 from pipeline.init.io import load_init_depths, stacked_depths_mm
 from pipeline.meshing import region as bounding
+
+# Pixels whose surface is seen beyond this incidence are fused with a longer truncation
+# (module docstring; measured in docs/evaluation.md, "Exact depth through the same meshing").
+GRAZING_INCIDENCE_DEG = 80.0
+GRAZING_TRUNC_FACTOR = 4.0
 
 # Cleaning that drops more than this fraction of the fused triangles gets a warning: a
 # real object may have lost a part (raise min_component_fraction's reach by lowering it).
@@ -52,7 +66,9 @@ def fuse_depth_maps(
     Args:
         K: ``(N, 3, 3)`` intrinsics; ``world_to_cam``: ``(N, 4, 4)`` world mm -> camera.
         colors: ``(N, H, W, 3)`` in [0, 1] or ``None``.
-        voxel_mm, trunc_mm: voxel size and SDF truncation (mm).
+        voxel_mm, trunc_mm: voxel size and SDF truncation (mm); pixels whose surface is seen
+            beyond ``GRAZING_INCIDENCE_DEG`` (:func:`grazing_pixels`) are fused with
+            ``GRAZING_TRUNC_FACTOR`` x ``trunc_mm``.
         depth_max_mm: depths beyond this are ignored.
         weight_threshold: voxels with less integration weight are not meshed; each view adds
             weight 1, and Open3D meshes weights strictly above the threshold, so 0.5 keeps
@@ -80,21 +96,25 @@ def fuse_depth_maps(
                                         attr_channels=tuple(channels), voxel_size=float(voxel_mm),
                                         block_resolution=8, block_count=block_count, device=device)
     for i in range(len(depths_mm)):
-        if not np.any((depths_mm[i] > 0) & (depths_mm[i] < depth_max_mm)):
-            continue  # Open3D aborts on a depth map that touches no block
-        depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depths_mm[i])))
-        intr = o3c.Tensor(open3d_intrinsics(K[i]))
-        extr = o3c.Tensor(np.asarray(world_to_cam[i], np.float64))
-        blocks = vbg.compute_unique_block_coordinates(depth, intr, extr, depth_scale=1.0,
-                                                      depth_max=float(depth_max_mm),
-                                                      trunc_voxel_multiplier=float(trunc_mm / voxel_mm))
-        if with_color:
-            color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colors[i], dtype=np.float32)))
-            vbg.integrate(blocks, depth, color, intr, intr, extr, depth_scale=1.0, depth_max=float(depth_max_mm),
-                          trunc_voxel_multiplier=float(trunc_mm / voxel_mm))
-        else:
-            vbg.integrate(blocks, depth, intr, extr, depth_scale=1.0, depth_max=float(depth_max_mm),
-                          trunc_voxel_multiplier=float(trunc_mm / voxel_mm))
+        grazing = grazing_pixels(depths_mm[i], K[i], GRAZING_INCIDENCE_DEG)
+        for part, trunc in ((~grazing, trunc_mm), (grazing, GRAZING_TRUNC_FACTOR * trunc_mm)):
+            d = np.where(part, depths_mm[i], np.float32(0.0))
+            if not np.any((d > 0) & (d < depth_max_mm)):
+                continue  # Open3D aborts on a depth map that touches no block
+            depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(d)))
+            intr = o3c.Tensor(open3d_intrinsics(K[i]))
+            extr = o3c.Tensor(np.asarray(world_to_cam[i], np.float64))
+            multiplier = float(trunc / voxel_mm)
+            blocks = vbg.compute_unique_block_coordinates(depth, intr, extr, depth_scale=1.0,
+                                                          depth_max=float(depth_max_mm),
+                                                          trunc_voxel_multiplier=multiplier)
+            if with_color:
+                color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colors[i], dtype=np.float32)))
+                vbg.integrate(blocks, depth, color, intr, intr, extr, depth_scale=1.0,
+                              depth_max=float(depth_max_mm), trunc_voxel_multiplier=multiplier)
+            else:
+                vbg.integrate(blocks, depth, intr, extr, depth_scale=1.0, depth_max=float(depth_max_mm),
+                              trunc_voxel_multiplier=multiplier)
     try:
         mesh = vbg.extract_triangle_mesh(weight_threshold=float(weight_threshold)).to_legacy()
     except RuntimeError as exc:  # Open3D fails on an empty extraction instead of returning nothing
@@ -103,6 +123,28 @@ def fuse_depth_maps(
     tris = np.asarray(mesh.triangles, dtype=np.int64)
     cols = np.asarray(mesh.vertex_colors, dtype=np.float64) if with_color and mesh.has_vertex_colors() else None
     return canonical_order(Mesh(verts, tris, cols))
+
+
+def grazing_pixels(depth_mm: np.ndarray, K: np.ndarray, incidence_deg: float) -> np.ndarray:
+    """``(H, W)`` bool: pixels of a depth map (camera z, 0 = none; integer pixel centres) whose
+    surface is seen beyond ``incidence_deg`` from its normal. The normal is the cross product
+    of the central differences of the back-projected points along x and y; a pixel without
+    depth at any of its four neighbours has no normal and is not grazing."""
+    d = np.asarray(depth_mm, np.float64)
+    H, W = d.shape
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    P = np.stack([(u - K[0, 2]) / K[0, 0] * d, (v - K[1, 2]) / K[1, 1] * d, d], -1)
+    ok = d > 0
+    dx, dy = np.zeros_like(P), np.zeros_like(P)
+    dx[:, 1:-1] = P[:, 2:] - P[:, :-2]
+    dy[1:-1] = P[2:] - P[:-2]
+    has = np.zeros_like(ok)
+    has[1:-1, 1:-1] = ok[1:-1, 2:] & ok[1:-1, :-2] & ok[2:, 1:-1] & ok[:-2, 1:-1]
+    n = np.cross(dx, dy)
+    n_len = np.linalg.norm(n, axis=-1)
+    p_len = np.linalg.norm(P, axis=-1)
+    cos = np.abs((n * P).sum(-1)) / np.maximum(n_len * p_len, 1e-300)
+    return ok & has & (n_len > 0) & (cos < np.cos(np.radians(incidence_deg)))
 
 
 def open3d_intrinsics(K: np.ndarray) -> np.ndarray:
