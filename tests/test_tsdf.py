@@ -271,3 +271,14 @@ def test_a_plane_seen_at_grazing_incidence_is_fused(monkeypatch):
         assert covered(before) < 0.5
     except tsdf.FusionError:
         pass  # nothing fused at all: lost too
+
+
+def test_depth_off_open3ds_pixel_stride_still_fuses():
+    """Open3D's block search reads every 4th pixel and aborts when none has depth; a depth map
+    (or its grazing part) with depth only between them still fuses, onto the plane."""
+    K, depth, n, _ = _plane_depth(0.0, W=160, H=120, f=290.0)
+    sparse = np.zeros_like(depth)
+    sparse[41:80:4, 41:120:4] = depth[41:80:4, 41:120:4]  # rows and columns 1 mod 4 only
+    mesh = tsdf.fuse_depth_maps(sparse[None], K[None], np.eye(4)[None], None, 2.0, 8.0, 3000.0)
+    assert len(mesh.triangles) > 0
+    assert np.median(np.abs(mesh.vertices_mm @ n - 685.0)) < 0.5

@@ -105,9 +105,18 @@ def fuse_depth_maps(
             intr = o3c.Tensor(open3d_intrinsics(K[i]))
             extr = o3c.Tensor(np.asarray(world_to_cam[i], np.float64))
             multiplier = float(trunc / voxel_mm)
-            blocks = vbg.compute_unique_block_coordinates(depth, intr, extr, depth_scale=1.0,
-                                                          depth_max=float(depth_max_mm),
-                                                          trunc_voxel_multiplier=multiplier)
+            try:
+                blocks = vbg.compute_unique_block_coordinates(depth, intr, extr, depth_scale=1.0,
+                                                              depth_max=float(depth_max_mm),
+                                                              trunc_voxel_multiplier=multiplier)
+            except RuntimeError as exc:
+                # Open3D reads every 4th pixel here and aborts when none of them has depth (a
+                # few grazing pixels): take the blocks from every pixel's point instead.
+                if "No block is touched" not in str(exc):
+                    raise
+                points = geometry.backproject_depth(K[i], world_to_cam[i], d)[(d > 0) & (d < depth_max_mm)]
+                cloud = o3d.t.geometry.PointCloud(o3c.Tensor(points.astype(np.float32)))
+                blocks = vbg.compute_unique_block_coordinates(cloud, trunc_voxel_multiplier=multiplier)
             if with_color:
                 color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colors[i], dtype=np.float32)))
                 vbg.integrate(blocks, depth, color, intr, intr, extr, depth_scale=1.0,
