@@ -63,6 +63,7 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
         assert f"Running stage '{stage}'" in first
     table2 = (tiny_repo / "reports/table2.csv").read_text().splitlines()
     assert [line.split(",")[0] for line in table2] == ["row", "3-view limit (GT seen by the input views)",
+                                                        "exact depth through the same meshing",
                                                         "MVS + TSDF (classical)", "baseline_2dgs", "no_priors",
                                                         "full method"]
     rows = list(csv.DictReader(table2))

@@ -30,7 +30,7 @@ from pipeline.reports.read import ReportError, read_json
 MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"
 LIMIT = "3-view limit (GT seen by the input views)"
-EXACT_DEPTH = "exact depth, same meshing"
+EXACT_DEPTH = "exact depth through the same meshing"
 NOT_A_METHOD = (MVS_TSDF, LIMIT, EXACT_DEPTH)  # rows without the method's components
 YARDSTICKS = (LIMIT, EXACT_DEPTH)  # not methods: never the best row
 # The method's components (CSV column: Markdown header), in the table's column order.

@@ -46,6 +46,6 @@ def run_limit(synth_dir: str | Path, scene_dir: str | Path, out_dir: str | Path,
         exact = exact_depth_mesh(*gt_mesh, scene, mesh_cfg)
         gt.write_ply_mesh(tmp / "exact_depth_mesh.ply", exact.vertices_mm, exact.triangles)
         exact_chamfer = limit_chamfer((exact.vertices_mm, exact.triangles), scene_dir, synth_dir / "gt", cfg, views,
-                                      log, name="exact depth, same meshing")
+                                      log, name="exact depth through the same meshing")
     return {"views": list(views), "chamfer": chamfer, "exact_depth": exact_chamfer,
             "gt_area_seen_fraction": round(mesh_area_mm2(V, F) / mesh_area_mm2(*gt_mesh), 4)}
