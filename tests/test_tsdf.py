@@ -282,3 +282,14 @@ def test_depth_off_open3ds_pixel_stride_still_fuses():
     mesh = tsdf.fuse_depth_maps(sparse[None], K[None], np.eye(4)[None], None, 2.0, 8.0, 3000.0)
     assert len(mesh.triangles) > 0
     assert np.median(np.abs(mesh.vertices_mm @ n - 685.0)) < 0.5
+
+
+def test_fusion_masks_cut_only_when_asked_and_present():
+    import dataclasses
+    from types import SimpleNamespace
+
+    masks = np.ones((2, 3, 4), bool)
+    on, off = dataclasses.replace(MeshConfig(), masks=True), dataclasses.replace(MeshConfig(), masks=False)
+    assert tsdf.fusion_masks(SimpleNamespace(masks=masks), on) is masks
+    assert tsdf.fusion_masks(SimpleNamespace(masks=masks), off) is None
+    assert tsdf.fusion_masks(SimpleNamespace(masks=None), on) is None

@@ -83,7 +83,7 @@ def input_view_depths_mm(params: SurfelParams, scene: Scene, cfg: MeshConfig,
     """What the mesh stage fuses at the input views: ``(depths, colours, masks)`` of
     :func:`render_depths_mm` with ``cfg.depth`` and ``cfg.alpha_min``, masked by the scene's
     masks when ``cfg.masks`` and it has them (``masks``: those masks, else ``None``)."""
-    masks = scene.masks if (cfg.masks and scene.masks is not None) else None
+    masks = tsdf.fusion_masks(scene, cfg)
     depths, colours = render_depths_mm(params, scene, scene.world_to_cam, scene.K, scene.width, scene.height,
                                        cfg.depth, cfg.alpha_min, backend, masks)
     return depths, colours, masks

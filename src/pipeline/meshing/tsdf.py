@@ -25,6 +25,7 @@ import numpy as np
 from pipeline import geometry, ply
 from pipeline.config.mesh import MeshConfig
 from pipeline.data.dtu import load_scene
+from pipeline.data.scene import Scene
 from pipeline.errors import InputError
 from pipeline.init.io import load_init_depths, stacked_depths_mm
 from pipeline.meshing import region as bounding
@@ -96,14 +97,16 @@ def fuse_depth_maps(
                                         attr_channels=tuple(channels), voxel_size=float(voxel_mm),
                                         block_resolution=8, block_count=block_count, device=device)
     for i in range(len(depths_mm)):
+        intr = o3c.Tensor(open3d_intrinsics(K[i]))
+        extr = o3c.Tensor(np.asarray(world_to_cam[i], np.float64))
+        if with_color:
+            color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colors[i], dtype=np.float32)))
         grazing = grazing_pixels(depths_mm[i], K[i], GRAZING_INCIDENCE_DEG)
         for part, trunc in ((~grazing, trunc_mm), (grazing, GRAZING_TRUNC_FACTOR * trunc_mm)):
             d = np.where(part, depths_mm[i], np.float32(0.0))
             if not np.any((d > 0) & (d < depth_max_mm)):
                 continue  # Open3D aborts on a depth map that touches no block
             depth = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(d)))
-            intr = o3c.Tensor(open3d_intrinsics(K[i]))
-            extr = o3c.Tensor(np.asarray(world_to_cam[i], np.float64))
             multiplier = float(trunc / voxel_mm)
             try:
                 blocks = vbg.compute_unique_block_coordinates(depth, intr, extr, depth_scale=1.0,
@@ -118,7 +121,6 @@ def fuse_depth_maps(
                 cloud = o3d.t.geometry.PointCloud(o3c.Tensor(points.astype(np.float32)))
                 blocks = vbg.compute_unique_block_coordinates(cloud, trunc_voxel_multiplier=multiplier)
             if with_color:
-                color = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colors[i], dtype=np.float32)))
                 vbg.integrate(blocks, depth, color, intr, intr, extr, depth_scale=1.0,
                               depth_max=float(depth_max_mm), trunc_voxel_multiplier=multiplier)
             else:
@@ -154,6 +156,13 @@ def grazing_pixels(depth_mm: np.ndarray, K: np.ndarray, incidence_deg: float) ->
     p_len = np.linalg.norm(P, axis=-1)
     cos = np.abs((n * P).sum(-1)) / np.maximum(n_len * p_len, 1e-300)
     return ok & has & (n_len > 0) & (cos < np.cos(np.radians(incidence_deg)))
+
+
+def fusion_masks(scene: Scene, cfg: MeshConfig) -> np.ndarray | None:
+    """``(N, H, W)`` bool masks that cut the depth fused at ``scene``'s input views: the scene's
+    masks when ``cfg.masks`` and it has them, else ``None`` (nothing cut). One rule for the mesh
+    stage and the exact-depth yardstick, so the two cannot drift apart."""
+    return scene.masks if (cfg.masks and scene.masks is not None) else None
 
 
 def open3d_intrinsics(K: np.ndarray) -> np.ndarray:

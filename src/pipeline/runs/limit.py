@@ -16,11 +16,11 @@ from pipeline.evaluation import dtu_eval, gt, seen
 from pipeline.synth.limit import exact_depth_mesh, limit_mesh, mesh_area_mm2
 
 
-def limit_chamfer(mesh: tuple[np.ndarray, np.ndarray], scene_dir: str | Path, gt_dir: str | Path,
+def limit_chamfer(mesh: tuple[np.ndarray, np.ndarray], scene_dir: str | Path, ground: gt.GroundTruth,
                   cfg: EvaluateConfig, views: list[int], log=None, name: str = "3-view limit") -> dict:
-    """DTU Chamfer of a yardstick mesh against the scene's GT, culled like the method's mesh
-    (``evaluate.cull_views`` of the prepared ``scene_dir``)."""
-    ground = gt.read_ground_truth(gt_dir, dtu.read_meta(Path(scene_dir)).get("scan_id"))
+    """DTU Chamfer of a yardstick mesh against the scene's GT (:func:`pipeline.evaluation.gt.
+    read_ground_truth`), culled like the method's mesh (``evaluate.cull_views`` of the prepared
+    ``scene_dir``)."""
     cull = dtu_eval.load_cull_views(scene_dir, cfg.cull_views, views)
     m = dtu_eval.evaluate_mesh(mesh[0], mesh[1], ground, cfg, views=cull, log=log, name=name,
                                seen_views=seen.load_input_views(scene_dir, views))
@@ -41,11 +41,12 @@ def run_limit(synth_dir: str | Path, scene_dir: str | Path, out_dir: str | Path,
             raise SceneError(f"{synth_dir}: the input views {views} see no ground-truth triangle")
         gt_mesh = gt.read_mesh(gt.paths(synth_dir / "gt", 0)["mesh"])
         gt.write_ply_mesh(tmp / "mesh.ply", V, F)
-        chamfer = limit_chamfer((V, F), scene_dir, synth_dir / "gt", cfg, views, log)
+        ground = gt.read_ground_truth(synth_dir / "gt", dtu.read_meta(Path(scene_dir)).get("scan_id"))
+        chamfer = limit_chamfer((V, F), scene_dir, ground, cfg, views, log)
         scene = dtu.load_scene(scene_dir, view_ids=views)
         exact = exact_depth_mesh(*gt_mesh, scene, mesh_cfg)
         gt.write_ply_mesh(tmp / "exact_depth_mesh.ply", exact.vertices_mm, exact.triangles)
-        exact_chamfer = limit_chamfer((exact.vertices_mm, exact.triangles), scene_dir, synth_dir / "gt", cfg, views,
+        exact_chamfer = limit_chamfer((exact.vertices_mm, exact.triangles), scene_dir, ground, cfg, views,
                                       log, name="exact depth through the same meshing")
     return {"views": list(views), "chamfer": chamfer, "exact_depth": exact_chamfer,
             "gt_area_seen_fraction": round(mesh_area_mm2(V, F) / mesh_area_mm2(*gt_mesh), 4)}

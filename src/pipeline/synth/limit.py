@@ -55,7 +55,7 @@ def exact_depth_mesh(gt_vertices_mm: np.ndarray, gt_triangles: np.ndarray, scene
     sizes, region and component rules) of the GT mesh's exact depth (camera z, mm, through
     the integer pixel centres) at ``scene``'s input views and image size, masked by the
     scene's masks as the mesh stage masks rendered depth (``cfg.masks``)."""
-    masks = scene.masks if (cfg.masks and scene.masks is not None) else None
+    masks = tsdf.fusion_masks(scene, cfg)
     depths = gt_depths_mm(gt_vertices_mm, gt_triangles, scene.K, scene.world_to_cam, scene.width, scene.height)
     if masks is not None:
         depths = np.where(masks, depths, 0.0)
