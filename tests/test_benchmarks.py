@@ -82,3 +82,30 @@ def test_bench_gcf(tmp_path, bundled_scan):
     assert rep["delta_mm"] == [-10.0, -5.0, 0.0, 5.0, 10.0]
     assert len(rep["curves"]["relief plate"]["loss"]) == 5
     assert (tmp_path / "gcf_vs_depth_offset.png").stat().st_size > 0
+
+
+def test_bench_train(tmp_path, bundled_scan):
+    import numpy as np
+
+    from pipeline import geometry
+    from pipeline.init.io import PointCloud, write_ply
+
+    scene, init, relief = write_relief_scene(tmp_path, bundled_scan, (23, 24, 33), 80, 60)
+    d, K, T = relief.depth_mm[0], relief.K[0], relief.world_to_cam[0]
+    pts = geometry.backproject_depth(K, T, d)[d > 0][::4]
+    n = len(pts)
+    write_ply(init / "points.ply", PointCloud(pts, np.full((n, 3), 0.5), np.tile([0.0, 0.0, -1.0], (n, 1)), np.ones(n)))
+    out = tmp_path / "training.json"
+    assert cli.main(["bench-train", "--scene", str(scene), "--init-dir", str(init), "--at", "400",
+                     "--iterations", "2", "--out", str(out)]) == 0
+    rep = read_report(out)
+    split = rep["split_s_per_iteration"]
+    assert rep["s_per_iteration"] > 0 and rep["surfels"] > 0 and rep["from_iteration"] == 400
+    assert split["raster forward kernel"] > 0 and split["torch autograd (loss terms' backward)"] > 0
+    assert sum(split.values()) == pytest.approx(rep["s_per_iteration"], rel=0.01, abs=1e-3)
+    assert "| raster forward kernel |" in out.with_suffix(".md").read_text()
+
+
+def test_bench_train_refuses_a_missing_scene(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        cli.main(["bench-train", "--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "t.json")])

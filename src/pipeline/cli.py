@@ -33,6 +33,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "variant-score": ("pipeline.stages.variant_score", "the meshing and scoring half of an ablation cell (a DVC stage)"),
     "bench-eval": ("pipeline.benchmarks.evaluation", "benchmark the Chamfer evaluation"),
     "bench-raster": ("pipeline.benchmarks.rasterizer", "benchmark the surfel rasterizer"),
+    "bench-train": ("pipeline.benchmarks.training", "where a training iteration's time goes (kernels, autograd, losses)"),
     "bench-priors": ("pipeline.benchmarks.priors", "benchmark the priors stage and the prior losses"),
     "bench-gcf": ("pipeline.benchmarks.gcf_offset", "GCF loss against a depth offset (minimum at the true depth?)"),
     "bench-layouts": ("pipeline.benchmarks.layouts", "one synthetic scene from the DTU, COLMAP and nerfstudio layouts: same Chamfer?"),

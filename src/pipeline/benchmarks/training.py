@@ -1,0 +1,148 @@
+"""``gcgs bench-train``: where a training iteration's time goes.
+
+Builds the trainer of one prepared scene (its init output and, when the loss reads them, its
+priors) with params' ``optimize`` / ``loss`` sections or a variant's (``--variant``, e.g.
+``sa_paper``), runs a few warm-up iterations, jumps to iteration ``--at`` (so the terms that
+start late are on: L_mv, L_d, L_dn) and times ``--iterations`` iterations under cProfile.
+The time is split by what runs:
+
+* the rasterizer's numba kernels: the forward compositing, the backward compositing and its
+  per-surfel reduction, the per-surfel set-up and tile binning;
+* the torch autograd engine outside them (the backward of every loss term);
+* the forward of the loss terms (photometric, multi-view, depth-normal, ...);
+* the rest: the optimizer step, densification, the rasterizer's Python wrapper, the loop.
+
+Shares are what compares between machines and loads; the seconds are this machine's at
+the recorded load. Writes ``--out`` (JSON) and the Markdown beside it.
+"""
+from __future__ import annotations
+
+import argparse
+import cProfile
+import json
+import os
+import pstats
+import time
+from pathlib import Path
+
+import torch
+
+from pipeline import atomic
+from pipeline.config.loss import LossConfig
+from pipeline.config.optimize import OptimizeConfig
+from pipeline.config.params import load_params, section
+from pipeline.measure import provenance
+
+# (category, module path suffix, function name): cProfile's own time of these functions.
+KERNELS = [
+    ("raster forward kernel", "rasterizer/_kernels.py", "forward"),
+    ("raster backward kernels", "rasterizer/_kernels.py", "backward"),
+    ("raster backward kernels", "rasterizer/_kernels.py", "reduce_and_chain"),
+    ("raster set-up and binning", "rasterizer/_kernels.py", "preprocess"),
+    ("raster set-up and binning", "rasterizer/_kernels.py", "bin_tiles"),
+    ("raster set-up and binning", "rasterizer/_kernels.py", "schedule_tiles"),
+]
+AUTOGRAD = "torch autograd (loss terms' backward)"
+LOSS_FORWARD = "loss terms' forward"
+REST = "rest (optimizer, densification, wrappers, loop)"
+CATEGORIES = list(dict.fromkeys(c for c, _, _ in KERNELS)) + [AUTOGRAD, LOSS_FORWARD, REST]
+
+
+def split_profile(stats: pstats.Stats, total_s: float) -> dict[str, float]:
+    """Seconds per category of a cProfile run of training steps lasting ``total_s``: the
+    kernels' and the autograd engine's own time, the loss terms' cumulative time (their
+    torch calls included), and the rest."""
+    out = dict.fromkeys(CATEGORIES, 0.0)
+    for (path, _line, name), (_cc, _nc, own, cum, _callers) in stats.stats.items():
+        for category, suffix, func in KERNELS:
+            if path.replace(os.sep, "/").endswith(suffix) and name == func:
+                out[category] += own
+        if name == "<method 'run_backward' of 'torch._C._EngineBase' objects>":
+            out[AUTOGRAD] += own
+        if path.replace(os.sep, "/").endswith("optimize/train.py") and name == "loss_terms":
+            out[LOSS_FORWARD] += cum
+    out[REST] = max(total_s - sum(v for k, v in out.items() if k != REST), 0.0)
+    return out
+
+
+def bench_training(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path | None,
+                   cfg: OptimizeConfig, loss: LossConfig, at: int, iterations: int, warmup: int = 3) -> dict:
+    """Time ``iterations`` training steps of a scene from iteration ``at`` (after ``warmup``
+    steps from the start, which compile and warm the kernels): seconds per iteration, the
+    split (:func:`split_profile`) and what was trained."""
+    from pipeline.data.dtu import load_scene
+    from pipeline.init.io import read_ply
+    from pipeline.optimize import init_from_cloud, make_views
+    from pipeline.optimize.train import Trainer
+    from pipeline.rasterizer import resolve_backend
+
+    if iterations < 1 or at < 0:
+        raise ValueError(f"bench-train: need --iterations >= 1 and --at >= 0, got {iterations}, {at}")
+    scene = load_scene(scene_dir, view_ids=None)
+    params = init_from_cloud(read_ply(Path(init_dir) / "points.ply"), scene, cfg, where=str(init_dir))
+    depth_dir = Path(init_dir) / "depth"
+    views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
+    trainer = Trainer(params, views, cfg, loss, resolve_backend(cfg.backend))
+    for _ in range(warmup):
+        trainer.step()
+    trainer.it = max(at, trainer.it)
+    trainer.step()  # the first step at the new iteration builds what the late terms need
+    profiler = cProfile.Profile()
+    start = time.perf_counter()
+    profiler.enable()
+    for _ in range(iterations):
+        trainer.step()
+    profiler.disable()
+    total = time.perf_counter() - start
+    split = split_profile(pstats.Stats(profiler), total)
+    return {"s_per_iteration": round(total / iterations, 4), "iterations": iterations, "from_iteration": at,
+            "surfels": int(trainer.params.num), "torch_threads": torch.get_num_threads(),
+            "split_s_per_iteration": {k: round(v / iterations, 4) for k, v in split.items()},
+            "split_share": {k: round(v / total, 3) for k, v in split.items()}}
+
+
+def markdown(result: dict) -> str:
+    lines = [f"# Where a training iteration goes: {result['scene']} ({result['config']})", "",
+             f"Commit {result['commit']}, {result['cpu']} ({result['cpu_count']} cores), torch threads "
+             f"{result['torch_threads']}, 1-minute load {result['load_average_1min']} before. "
+             f"{result['iterations']} iterations from iteration {result['from_iteration']}, "
+             f"{result['surfels']} surfels: {result['s_per_iteration']} s per iteration. "
+             "Shares compare between machines and loads; seconds are this run's.", "",
+             "| part | s per iteration | share |", "| --- | --- | --- |"]
+    for k, s in result["split_s_per_iteration"].items():
+        lines.append(f"| {k} | {s:.4f} | {result['split_share'][k]:.1%} |")
+    return "\n".join(lines) + "\n"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scene", default="data/scenes/synth_relief", help="prepared scene")
+    p.add_argument("--init-dir", default="data/init/synth_relief", help="its init output (cloud, depth maps)")
+    p.add_argument("--priors-dir", default=None, help="its priors output (needed when L_nor or L_gcf is on)")
+    p.add_argument("--variant", default=None, help="train with this ablation variant's settings (e.g. sa_paper)")
+    p.add_argument("--at", type=int, default=None,
+                   help="iteration to time from (default: 85%% of the run, every term on)")
+    p.add_argument("--iterations", type=int, default=20, help="iterations timed")
+    p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
+    p.add_argument("--out", default="reports/benchmarks/training.json", help="JSON to write (and .md beside it)")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pipeline.config.variants import variant_training
+
+    for path in (Path(args.scene), Path(args.init_dir)):
+        if not path.is_dir():
+            raise FileNotFoundError(f"{path}: not found (run `dvc repro`, or pass --scene/--init-dir)")
+    params = load_params(args.params)
+    if args.variant:
+        _, cfg, loss = variant_training(params, args.variant)
+    else:
+        cfg, loss = section(OptimizeConfig, "optimize", params), section(LossConfig, "loss", params)
+    at = int(0.85 * cfg.iterations) if args.at is None else args.at
+    facts = provenance()
+    result = {"scene": args.scene, "config": args.variant or "params' optimize and loss", "commit": facts["commit"],
+              "cpu": facts["cpu"], "cpu_count": facts["cpu_cores"], "load_average_1min": facts["load_average_1min"],
+              **bench_training(args.scene, args.init_dir, args.priors_dir, cfg, loss, at, args.iterations)}
+    atomic.write_text(args.out, json.dumps(result, indent=2) + "\n")
+    atomic.write_text(Path(args.out).with_suffix(".md"), markdown(result))
+    print(markdown(result))
+    return 0
