@@ -208,3 +208,17 @@ def test_presets_are_the_sweep_cells_they_cite(preset, cell):
     assert preset_cfg.pop("preset") == preset
     cell_cfg.pop("preset")
     assert preset_cfg == cell_cfg
+
+
+def test_a_cell_without_its_ground_truth_fails_before_training(tmp_path, monkeypatch):
+    from pipeline.errors import MissingInputError
+    from pipeline.runs import variant as run
+
+    def must_not_train(*args, **kwargs):
+        raise AssertionError("trained although the ground truth is missing")
+
+    monkeypatch.setattr(run, "train_variant", must_not_train)
+    with pytest.raises(MissingInputError, match="ground-truth folder not found.*nothing was trained"):
+        run.run_variant("synth_thin", "full", {}, tmp_path / "scene", tmp_path / "src", tmp_path / "no_gt", {},
+                        tmp_path / "priors", tmp_path / "out", tmp_path / "r.json", [23, 24, 33])
+    assert not (tmp_path / "out").exists()
