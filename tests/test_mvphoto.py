@@ -618,6 +618,18 @@ def test_reference_pixels_match_slow_reference(max_deg):
     assert torch.equal(reference_pixels(surface, -3.0 * normal, K, max_deg), got)
 
 
+def test_reference_pixels_leave_out_a_zero_normal():
+    """A pixel with no rendered normal (all three components 0) has no incidence angle: it is
+    not a reference pixel at any angle below 90 degrees."""
+    surface = torch.ones(4, 5, dtype=torch.bool)
+    normal = torch.zeros(4, 5, 3)
+    normal[..., 2] = -1.0
+    normal[1, 2] = 0.0
+    K = torch.tensor([[20.0, 0, 2], [0, 20.0, 1.5], [0, 0, 1]])
+    kept = reference_pixels(surface, normal, K, 70.0)
+    assert not kept[1, 2] and kept.sum() == 19
+
+
 def test_reference_pixels_at_90_degrees_keep_the_surface():
     surface = torch.rand(10, 12, generator=torch.Generator().manual_seed(0)) > 0.5
     normal = torch.randn(10, 12, 3)

@@ -208,6 +208,18 @@ def test_depth_to_normals_of_a_plane_faces_the_camera():
     assert torch.autograd.gradcheck(lambda d: terms.depth_normal_loss(normal[:, :6, :7], d, alpha[:6, :7], K), (small,))
 
 
+def test_depth_normal_loss_gradient_is_finite_where_the_normal_vanishes():
+    """A constant-zero depth patch has no normal (the cross product is 0): the loss there is
+    1 and its gradient finite, not nan from 0 / 0."""
+    K = torch.tensor([[50.0, 0, 3], [0, 50.0, 2.5], [0, 0, 1]], dtype=torch.float64)
+    depth = torch.zeros(6, 7, dtype=torch.float64, requires_grad=True)
+    normal = torch.zeros(3, 6, 7, dtype=torch.float64)
+    normal[2] = -1.0
+    loss = terms.depth_normal_loss(normal, depth, torch.ones(6, 7, dtype=torch.float64), K)
+    loss.backward()
+    assert float(loss) == 1.0 and torch.isfinite(depth.grad).all()
+
+
 def test_mask_loss():
     alpha = torch.tensor([[0.2, 0.9]], requires_grad=True)
     mask = torch.tensor([[False, True]])

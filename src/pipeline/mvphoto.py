@@ -309,9 +309,16 @@ def reference_pixels(surface: torch.Tensor, normal: torch.Tensor, K_train: torch
     if max_incidence_deg >= 90.0:
         return surface.clone()
     h, w = surface.shape
-    ys, xs = torch.meshgrid(torch.arange(h, dtype=normal.dtype), torch.arange(w, dtype=normal.dtype), indexing="ij")
-    rays = torch.stack([xs, ys, torch.ones_like(xs)], -1) @ torch.linalg.inv(_as(K_train, normal)).t()
-    cos = (F.normalize(normal.detach(), dim=-1) * F.normalize(rays, dim=-1)).sum(-1).abs()
+    n = normal.detach()
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=n.dtype), torch.arange(w, dtype=n.dtype), indexing="ij")
+    Kinv = torch.linalg.inv(_as(K_train, n))
+    rays = [Kinv[i, 0] * xs + Kinv[i, 1] * ys + Kinv[i, 2] for i in range(3)]
+    # Channel by channel (a sum over an axis of 3 is slow in torch here); a zero normal has
+    # cosine 0, as F.normalize would give it.
+    dot = (n[..., 0] * rays[0] + n[..., 1] * rays[1] + n[..., 2] * rays[2]).abs()
+    n_len = torch.sqrt(n[..., 0] * n[..., 0] + n[..., 1] * n[..., 1] + n[..., 2] * n[..., 2])
+    ray_len = torch.sqrt(rays[0] * rays[0] + rays[1] * rays[1] + rays[2] * rays[2])
+    cos = dot / (n_len.clamp_min(1e-12) * ray_len.clamp_min(1e-12))
     return surface & (cos >= math.cos(math.radians(max_incidence_deg)))
 
 

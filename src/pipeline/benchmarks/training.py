@@ -70,18 +70,13 @@ def bench_training(scene_dir: str | Path, init_dir: str | Path, priors_dir: str 
     """Time ``iterations`` training steps of a scene from iteration ``at`` (after ``warmup``
     steps from the start, which compile and warm the kernels): seconds per iteration, the
     split (:func:`split_profile`) and what was trained."""
-    from pipeline.data.dtu import load_scene
-    from pipeline.init.io import read_ply
-    from pipeline.optimize import init_from_cloud, make_views
     from pipeline.optimize.train import Trainer
     from pipeline.rasterizer import resolve_backend
+    from pipeline.runs.optimize import load_training_inputs
 
     if iterations < 1 or at < 0:
         raise ValueError(f"bench-train: need --iterations >= 1 and --at >= 0, got {iterations}, {at}")
-    scene = load_scene(scene_dir, view_ids=None)
-    params = init_from_cloud(read_ply(Path(init_dir) / "points.ply"), scene, cfg, where=str(init_dir))
-    depth_dir = Path(init_dir) / "depth"
-    views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
+    _, params, views = load_training_inputs(scene_dir, init_dir, priors_dir, cfg, loss)
     trainer = Trainer(params, views, cfg, loss, resolve_backend(cfg.backend))
     for _ in range(warmup):
         trainer.step()

@@ -10,14 +10,30 @@ from pipeline import atomic
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.data.dtu import load_scene
-from pipeline.data.scene import check_made_from
+from pipeline.data.scene import Scene, check_made_from
 from pipeline.errors import DegenerateResultError, OutputError
 from pipeline.init.io import read_ply
 from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_masks
-from pipeline.optimize.surfels import write_splats_3dgs_ply, write_surfel_ply
+from pipeline.optimize.surfels import SurfelParams, write_splats_3dgs_ply, write_surfel_ply
 from pipeline.optimize.train import TrainResult, train
 
 LOGGED_TERMS = ("total", "l1", "photo", "gcf", "mv", "mvgeo", "nor", "mvs", "dn", "dist", "mask", "surfels", "seconds")
+
+
+def load_training_inputs(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path | None,
+                         cfg: OptimizeConfig, loss: LossConfig) -> tuple[Scene, SurfelParams, list]:
+    """What a training starts from: the scene, the surfels made from the init's
+    ``points.ply`` (normalised frame) and the training views with their priors and the
+    init's depth maps; the init and the priors checked to be made from this scene."""
+    scene = load_scene(scene_dir, view_ids=None)
+    check_made_from(scene, init_dir, "init.json", "init")
+    if priors_dir is not None and (loss.lambda_nor > 0 or loss.lambda_gcf > 0):
+        check_made_from(scene, priors_dir, "priors.json", "priors")
+    cloud_path = Path(init_dir) / "points.ply"
+    surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
+    depth_dir = Path(init_dir) / "depth"
+    views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
+    return scene, surfels, views
 
 
 def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path, out_dir: str | Path,
@@ -33,14 +49,8 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
             raise OutputError(f"{extra}: lies inside the output folder {out_dir}, which is replaced when the run "
                               "ends; put it beside the output")
     with atomic.atomic_dir(out_dir, "surfels", inputs=(scene_dir, init_dir, priors_dir)) as tmp:
-        scene = load_scene(scene_dir, view_ids=None)
-        check_made_from(scene, init_dir, "init.json", "init")
-        if priors_dir is not None and (loss.lambda_nor > 0 or loss.lambda_gcf > 0):
-            check_made_from(scene, priors_dir, "priors.json", "priors")
+        scene, surfels, views = load_training_inputs(scene_dir, init_dir, priors_dir, cfg, loss)
         cloud_path = Path(init_dir) / "points.ply"
-        surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
-        depth_dir = Path(init_dir) / "depth"
-        views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
 
         live = None
         if live_dir is not None:
