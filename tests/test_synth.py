@@ -320,17 +320,45 @@ def test_render_does_not_depend_on_the_ray_casters_float_path(cams):
         np.testing.assert_array_equal(plain.shade(a), other.shade(b))
 
 
-def test_snap_merges_last_bit_differences_and_keeps_32_bits():
+def test_snap_merges_last_bit_differences_of_each_columns_scale_and_keeps_32_bits():
     from pipeline.synth.render import snap
 
     rng = np.random.default_rng(0)
-    x = rng.normal(size=1000) * 10.0 ** rng.integers(-4, 4, 1000)
+    # columns of very different scales, each holding entries far below its scale
+    x = rng.normal(size=(1000, 3)) * 10.0 ** rng.integers(-4, 4, (1000, 3)) * np.array([1e-3, 1.0, 1e3])
     s = snap(x)
-    assert np.all(np.abs(s - x) <= np.abs(x) * 2.0**-32)
+    scale = np.abs(x).max(axis=0)
+    assert np.all(np.abs(s - x) <= scale * 2.0**-32)
+    assert np.any(s != x)
     for ulps in (1, -1, 3):
-        # equal unless x lies within those ulps of a rounding boundary (odds ~1e-9 here)
-        np.testing.assert_array_equal(snap(x + ulps * np.spacing(x)), s)
+        # an error of a few ulps of the column's scale, as LAPACK and BLAS make, on every entry
+        noise = ulps * np.spacing(scale) * rng.choice([-1.0, 1.0], size=x.shape)
+        # equal unless an entry lies within those ulps of a rounding boundary (odds ~1e-8 here)
+        np.testing.assert_array_equal(snap(x + noise), s)
     assert snap(0.0) == 0.0 and snap(s).tolist() == s.tolist()
+    assert snap(np.zeros(3)).tolist() == [0.0, 0.0, 0.0]
+    v = np.array([700.0, -3e-9, 0.25])  # a vector: one scale for all its entries
+    np.testing.assert_array_equal(snap(v + np.spacing(700.0)), snap(v))
+
+
+def test_snapped_cameras_ignore_decomposition_noise(bundled_scan):
+    """The world matrices perturbed by a few ulps (what another CPU's LAPACK does to the
+    decomposition) give the same snapped intrinsics and poses: the skew, ~1e-4 beside a
+    focal length of ~1e3, is noise far above its own last bit."""
+    from pipeline import geometry
+    from pipeline.data import dtu
+    from pipeline.synth.render import snap
+
+    cams = dtu.load_cameras(bundled_scan)
+    data = np.load(cams.path)
+    rng = np.random.default_rng(1)
+    for v in cams.ids:
+        P = np.asarray(data[f"world_mat_{v}"], np.float64)
+        K, w2c = geometry.decompose_projection(P * (1.0 + rng.integers(-4, 5, P.shape) * 2.0**-52))
+        Ks = geometry.scale_intrinsics(K, 0.05, 0.05)
+        np.testing.assert_array_equal(snap(K), snap(cams.K[v]), err_msg=f"view {v}")
+        np.testing.assert_array_equal(snap(Ks), snap(geometry.scale_intrinsics(cams.K[v], 0.05, 0.05)), err_msg=f"view {v}")
+        np.testing.assert_array_equal(snap(w2c), snap(cams.world_to_cam[v]), err_msg=f"view {v}")
 
 
 @pytest.mark.parametrize("name", ["synth_textureless", "synth_relief", "synth_thin"])

@@ -16,12 +16,18 @@ from pipeline.init.io import read_ply
 from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_masks
 from pipeline.optimize.surfels import SurfelParams, write_splats_3dgs_ply, write_surfel_ply
 from pipeline.optimize.train import TrainResult, train
+from pipeline.optimize.views import TrainViews
 
 LOGGED_TERMS = ("total", "l1", "photo", "gcf", "mv", "mvgeo", "nor", "mvs", "dn", "dist", "mask", "surfels", "seconds")
 
 
+def init_cloud_path(init_dir: str | Path) -> Path:
+    """The init stage's cloud (``points.ply``, normalised frame) in ``init_dir``."""
+    return Path(init_dir) / "points.ply"
+
+
 def load_training_inputs(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | Path | None,
-                         cfg: OptimizeConfig, loss: LossConfig) -> tuple[Scene, SurfelParams, list]:
+                         cfg: OptimizeConfig, loss: LossConfig) -> tuple[Scene, SurfelParams, TrainViews]:
     """What a training starts from: the scene, the surfels made from the init's
     ``points.ply`` (normalised frame) and the training views with their priors and the
     init's depth maps; the init and the priors checked to be made from this scene."""
@@ -29,7 +35,7 @@ def load_training_inputs(scene_dir: str | Path, init_dir: str | Path, priors_dir
     check_made_from(scene, init_dir, "init.json", "init")
     if priors_dir is not None and (loss.lambda_nor > 0 or loss.lambda_gcf > 0):
         check_made_from(scene, priors_dir, "priors.json", "priors")
-    cloud_path = Path(init_dir) / "points.ply"
+    cloud_path = init_cloud_path(init_dir)
     surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
     depth_dir = Path(init_dir) / "depth"
     views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
@@ -50,7 +56,6 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
                               "ends; put it beside the output")
     with atomic.atomic_dir(out_dir, "surfels", inputs=(scene_dir, init_dir, priors_dir)) as tmp:
         scene, surfels, views = load_training_inputs(scene_dir, init_dir, priors_dir, cfg, loss)
-        cloud_path = Path(init_dir) / "points.ply"
 
         live = None
         if live_dir is not None:
@@ -71,7 +76,7 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
         if result.params.num < MIN_SURFELS:
             raise DegenerateResultError(
                 f"{out_dir}: training ended with {result.params.num} surfels (fewer than {MIN_SURFELS}) from "
-                f"{cloud_path}; nothing written (too few init points, or every surfel pruned)")
+                f"{init_cloud_path(init_dir)}; nothing written (too few init points, or every surfel pruned)")
 
         facts = {
             "scene": str(scene_dir), "scene_fingerprint": scene.fingerprint(), "preset": cfg.preset, "backend": result.backend, "iterations": result.iterations,

@@ -10,9 +10,9 @@ float32 code paths on other CPUs, so only *which* triangle a ray hits is taken f
 hit distance, barycentrics and face normal are recomputed in float64 from that triangle
 (:func:`_refine_hits`, plain IEEE arithmetic). Numbers that come out of BLAS / LAPACK /
 numpy's SIMD functions (camera decompositions, the table frame, the shapes' vertices),
-whose last bits differ between CPUs, are rounded to a 32-bit mantissa (:func:`snap`) before
-anything is rendered from them: a difference of a few ulps then survives only when a value
-lies within those ulps of a rounding boundary (odds ~1e-7 per value).
+whose last bits differ between CPUs, are rounded to 32 bits below their column's scale
+(:func:`snap`) before anything is rendered from them: a difference of a few ulps of that scale then survives only
+when a value lies within them of a rounding boundary (odds ~1e-7 per value).
 """
 from __future__ import annotations
 
@@ -31,14 +31,25 @@ AA_THRESHOLD = 0.1
 AA_OFFSETS = ((-0.125, -0.375), (0.375, -0.125), (0.125, 0.375), (-0.375, 0.125))
 # A surface point counts as seen when nothing lies on its ray more than this before it.
 VISIBILITY_TOL_MM = 0.05
-SNAP_BITS = 32  # mantissa bits kept by snap(): relative step 2^-32 ~ 2.3e-10
+SNAP_BITS = 32  # bits kept by snap(): step 2^-32 ~ 2.3e-10 of a column's scale
 
 
 def snap(x: np.ndarray | float, bits: int = SNAP_BITS) -> np.ndarray:
-    """``x`` (float64) rounded to a ``bits``-bit mantissa (ties to even): numbers that differ
-    in their last few bits between machines become equal (module docstring)."""
-    m, e = np.frexp(np.asarray(x, np.float64))
-    return np.ldexp(np.round(m * 2.0**bits) / 2.0**bits, e)
+    """``x`` (float64) rounded, ties to even, to a grid of ``2^-bits`` times its column's
+    scale: numbers that differ in their last bits between machines become equal (module
+    docstring).
+
+    The scale is the power of two above the largest magnitude of the scalar, of the vector
+    (1-D), or of each column (last axis) of an array. A LAPACK or BLAS result's error is
+    relative to that scale, not to the entry: a camera's skew (1e-4 beside a focal length
+    of 1e3) or a rotation entry near zero carries noise far above its own last bit, and a
+    grid relative to the entry alone would keep it."""
+    x = np.asarray(x, np.float64)
+    mag = np.abs(x) if x.ndim < 2 else np.abs(x).max(axis=tuple(range(x.ndim - 1)))
+    if x.ndim == 1:
+        mag = mag.max(initial=0.0)
+    quantum = np.ldexp(1.0, np.frexp(mag)[1] - bits)  # a power of two: the division is exact
+    return np.round(x / quantum) * quantum
 
 
 def pixel_to_ray(K: np.ndarray, world_to_cam: np.ndarray, frame_to_world: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
