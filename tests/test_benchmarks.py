@@ -54,6 +54,13 @@ def test_bench_raster(tmp_path, monkeypatch):
     for r in recs:
         assert r["forward_s"] > 0 and r["backward_s"] > 0 and r["peak_mb"] is not None
     assert "| 64x48 | 400 |" in (tmp_path / "rasterizer_quick.md").read_text()
+    (cpu,) = [r for r in recs if r["backend"] == "cpu"]
+    split = cpu["split_s"]
+    assert list(split) == [*rasterizer.KERNEL_PARTS, "rest"]
+    # every kernel ran (own time > 0), and the parts add up to the timed forward + backward
+    assert all(split[k] > 0 for k in rasterizer.KERNEL_PARTS)
+    assert sum(split.values()) == pytest.approx(cpu["forward_s"] + cpu["backward_s"], abs=5e-4)  # 4-decimal rounding
+    assert "## Where the cpu backend's time goes" in (tmp_path / "rasterizer_quick.md").read_text()
 
 
 @pytest.fixture(scope="module")

@@ -5,6 +5,11 @@ render colour + alpha + expected/median depth + normals + distortion, then back-
 propagate random cotangents on all of them. Writes ``rasterizer.json`` (one record per
 backend and case) and ``rasterizer.md`` (a table with the cpu/reference speed ratio).
 
+Each cpu case also splits its time by kernel (cProfile's own time of each numba kernel over
+the timed runs, per run): the per-surfel set-up and binning, the forward compositing, the
+backward compositing, the per-surfel reduction, and the rest (the Python wrapper, torch's
+allocations and the cotangents' loss).
+
 ``pairs`` is the number of pixel-surfel pairs inside the support boxes (the work the
 scene defines, identical for both backends); ``pairs_per_s = pairs / (forward_s +
 backward_s)``. ``peak_mb`` is the peak resident memory above the level before the case
@@ -16,9 +21,11 @@ loop does.
 from __future__ import annotations
 
 import argparse
+import cProfile
 import json
 import os
 import platform
+import pstats
 import statistics
 import time
 from pathlib import Path
@@ -45,6 +52,21 @@ MAPS = ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "no
 # would not fit.
 REF_BYTES_PER_PAIR = 150
 REF_BLOCK = 8
+KERNEL_PARTS = {  # part of a render -> the cpu backend's numba kernels it runs
+    "set-up and binning": ("preprocess", "bin_tiles", "schedule_tiles"),
+    "forward compositing": ("forward",),
+    "backward compositing": ("backward",),
+    "per-surfel reduction": ("reduce_and_chain",),
+}
+
+
+def kernel_seconds(stats: pstats.Stats) -> dict[str, float]:
+    """cProfile's own seconds of each numba kernel of the cpu backend (``_kernels.py``)."""
+    out = {f: 0.0 for funcs in KERNEL_PARTS.values() for f in funcs}
+    for (path, _line, name), (_cc, _nc, own, _cum, _callers) in stats.stats.items():
+        if path.replace(os.sep, "/").endswith("rasterizer/_kernels.py") and name in out:
+            out[name] += own
+    return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -134,10 +156,17 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
         f, b = _time_once(s, cam, backend, cot)
     peak = mem.added_mb if mem.peak_is_own else None  # None: this kernel cannot reset the peak
     if backend == "cpu":  # the peak run doubles as warm-up; time fresh runs
+        profiler = cProfile.Profile()
         for _ in range(repeats):
+            profiler.enable()
             f, b = _time_once(s, cam, backend, cot)
+            profiler.disable()
             fwd.append(f)
             bwd.append(b)
+        own = kernel_seconds(pstats.Stats(profiler))
+        split = {part: sum(own[f] for f in funcs) / repeats for part, funcs in KERNEL_PARTS.items()}
+        split["rest"] = max((sum(fwd) + sum(bwd)) / repeats - sum(split.values()), 0.0)
+        rec["split_s"] = {k: round(v, 6) for k, v in split.items()}
     else:
         fwd, bwd = [f], [b]
     f_med, b_med = statistics.median(fwd), statistics.median(bwd)
@@ -205,6 +234,23 @@ def _markdown(records: list[dict], meta: dict) -> str:
     if skipped:
         lines += ["", "Reference cases skipped (would not fit in memory): " + ", ".join(
             f"{r['width']}x{r['height']}/{r['num_surfels']} ({r['skipped']})" for r in skipped)]  # fmt: skip
+    split = [r for r in records if "split_s" in r]
+    if split:
+        parts = list(split[0]["split_s"])
+        lines += [
+            "",
+            "## Where the cpu backend's time goes",
+            "",
+            "Seconds per forward + backward (cProfile's own time of each kernel over the timed runs; rest = the "
+            "Python wrapper, allocations and the cotangents' loss), and each part's share of the total:",
+            "",
+            "| image | surfels | " + " | ".join(parts) + " |",
+            "|---|---|" + "---|" * len(parts),
+        ]
+        for r in split:
+            total = sum(r["split_s"].values()) or 1.0
+            cells = [f"{r['split_s'][k]:.4f} ({r['split_s'][k] / total:.0%})" for k in parts]
+            lines.append(f"| {r['width']}x{r['height']} | {r['num_surfels']} | " + " | ".join(cells) + " |")
     dev = [r for r in records if "centre_depth_dev_mean" in r]
     if dev:
         lines += [

@@ -28,24 +28,22 @@ from pathlib import Path
 import torch
 
 from pipeline import atomic
+from pipeline.benchmarks.rasterizer import kernel_seconds
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import load_params, section
 from pipeline.measure import provenance
 
-# (category, module path suffix, function name): cProfile's own time of these functions.
-KERNELS = [
-    ("raster forward kernel", "rasterizer/_kernels.py", "forward"),
-    ("raster backward kernels", "rasterizer/_kernels.py", "backward"),
-    ("raster backward kernels", "rasterizer/_kernels.py", "reduce_and_chain"),
-    ("raster set-up and binning", "rasterizer/_kernels.py", "preprocess"),
-    ("raster set-up and binning", "rasterizer/_kernels.py", "bin_tiles"),
-    ("raster set-up and binning", "rasterizer/_kernels.py", "schedule_tiles"),
-]
+# category -> the rasterizer's numba kernels in it (cProfile's own time).
+KERNELS = {
+    "raster forward kernel": ("forward",),
+    "raster backward kernels": ("backward", "reduce_and_chain"),
+    "raster set-up and binning": ("preprocess", "bin_tiles", "schedule_tiles"),
+}
 AUTOGRAD = "torch autograd (loss terms' backward)"
 LOSS_FORWARD = "loss terms' forward"
 REST = "rest (optimizer, densification, wrappers, loop)"
-CATEGORIES = list(dict.fromkeys(c for c, _, _ in KERNELS)) + [AUTOGRAD, LOSS_FORWARD, REST]
+CATEGORIES = list(KERNELS) + [AUTOGRAD, LOSS_FORWARD, REST]
 
 
 def split_profile(stats: pstats.Stats, total_s: float) -> dict[str, float]:
@@ -53,12 +51,12 @@ def split_profile(stats: pstats.Stats, total_s: float) -> dict[str, float]:
     kernels' and the autograd engine's own time, the loss terms' cumulative time (their
     torch calls included), and the rest."""
     out = dict.fromkeys(CATEGORIES, 0.0)
-    for (path, _line, name), (_cc, _nc, own, cum, _callers) in stats.stats.items():
-        for category, suffix, func in KERNELS:
-            if path.replace(os.sep, "/").endswith(suffix) and name == func:
-                out[category] += own
+    own = kernel_seconds(stats)
+    for category, funcs in KERNELS.items():
+        out[category] = sum(own[f] for f in funcs)
+    for (path, _line, name), (_cc, _nc, own_s, cum, _callers) in stats.stats.items():
         if name == "<method 'run_backward' of 'torch._C._EngineBase' objects>":
-            out[AUTOGRAD] += own
+            out[AUTOGRAD] += own_s
         if path.replace(os.sep, "/").endswith("optimize/train.py") and name == "loss_terms":
             out[LOSS_FORWARD] += cum
     out[REST] = max(total_s - sum(v for k, v in out.items() if k != REST), 0.0)
