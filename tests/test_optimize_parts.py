@@ -350,3 +350,26 @@ def test_normal_smoothness_spares_image_edges_and_ignores_length():
     assert terms.normal_smoothness_loss(n, edge, valid, 10.0) < 0.01 * on_flat
     assert torch.allclose(terms.normal_smoothness_loss(3.0 * n, flat, valid, 10.0), on_flat)
     assert terms.normal_smoothness_loss(n, flat, torch.zeros_like(valid), 10.0) == 0
+
+
+def _flat_loop(image: torch.Tensor, max_std: float, window: int) -> torch.Tensor:
+    grey = image.mean(0)
+    H, W = grey.shape
+    r = window // 2
+    out = torch.zeros(H, W, dtype=torch.bool)
+    for i in range(H):
+        for j in range(W):
+            patch = grey[max(i - r, 0):i + r + 1, max(j - r, 0):j + r + 1]
+            out[i, j] = patch.std(unbiased=False) < max_std
+    return out
+
+
+def test_flat_pixels_matches_a_pixel_loop_and_finds_the_flat_half():
+    g = torch.Generator().manual_seed(3)
+    img = torch.rand(3, 9, 11, dtype=torch.float64, generator=g) * 0.2
+    img[:, :, :6] = 0.5 + 0.001 * img[:, :, :6]  # a nearly flat left part
+    for max_std in (0.005, 0.03, 0.08):
+        for window in (3, 5):
+            assert torch.equal(terms.flat_pixels(img, max_std, window), _flat_loop(img, max_std, window))
+    flat = terms.flat_pixels(img, 0.005)
+    assert flat[:, :4].all() and not flat[:, 8:].any()

@@ -78,6 +78,9 @@ def test_section_applies_overrides_before_validation():
     for bad in (-0.01, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match="loss.mv_ncc_gamma must be a finite number >= 0"):
             section(LossConfig, "loss", params, {"mv_ncc_gamma": bad})
+    for bad in (-0.01, float("nan")):
+        with pytest.raises(ConfigError, match="loss.lambda_smooth, smooth_gamma and smooth_max_std must be finite and >= 0"):
+            section(LossConfig, "loss", params, {"smooth_max_std": bad})
 
 
 def test_one_list_of_init_backends():

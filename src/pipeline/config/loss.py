@@ -44,12 +44,15 @@ class LossConfig:
     # start.mv. 0: off.
     lambda_smooth: float = 0.0
     smooth_gamma: float = 10.0
+    # L_smooth only between pixels whose 5x5 grey std (training resolution) is below this,
+    # where the image gives L_photo and L_mv nothing to go by. 0: every surface pixel.
+    smooth_max_std: float = 0.0
 
     def __post_init__(self) -> None:
         if self.mv_patch < 3 or self.mv_patch % 2 == 0:
             raise ConfigError(f"loss.mv_patch must be odd and >= 3, got {self.mv_patch}")
-        if min(self.lambda_smooth, self.smooth_gamma) < 0:
-            raise ConfigError("loss.lambda_smooth and smooth_gamma must be >= 0")
+        if not all(math.isfinite(x) and x >= 0 for x in (self.lambda_smooth, self.smooth_gamma, self.smooth_max_std)):
+            raise ConfigError("loss.lambda_smooth, smooth_gamma and smooth_max_std must be finite and >= 0")
         if not (math.isfinite(self.mv_ncc_gamma) and self.mv_ncc_gamma >= 0):
             raise ConfigError(f"loss.mv_ncc_gamma must be a finite number >= 0 (0: plain NCC), got {self.mv_ncc_gamma}")
         if min(self.lambda_mv, self.lambda_mvgeo, self.mv_min_patch_std) < 0 or self.mv_max_fb_px <= 0:

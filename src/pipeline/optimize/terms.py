@@ -90,6 +90,18 @@ def mask_loss(alpha: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
     return (alpha - mask.to(alpha)).abs().mean()
 
 
+def flat_pixels(image: torch.Tensor, max_std: float, window: int = 5) -> torch.Tensor:
+    """``(H, W)`` bool: pixels whose ``window`` x ``window`` grey std (channel mean of
+    ``image`` ``(C, H, W)``; the window cut at the border) is below ``max_std``."""
+    grey = image.detach().mean(0, keepdim=True)[None]
+    pad = window // 2
+    ones = torch.ones_like(grey)
+    n = F.avg_pool2d(ones, window, 1, pad, count_include_pad=True)
+    m1 = F.avg_pool2d(grey, window, 1, pad, count_include_pad=True) / n
+    m2 = F.avg_pool2d(grey * grey, window, 1, pad, count_include_pad=True) / n
+    return ((m2 - m1 * m1).clamp_min(0).sqrt() < max_std)[0, 0]
+
+
 def normal_smoothness_loss(normal: torch.Tensor, image: torch.Tensor, valid: torch.Tensor, gamma: float) -> torch.Tensor:
     """Edge-aware smoothness of a normal map: over the pairs of 4-neighbour pixels that are
     both ``valid``, the mean of ``|n_p - n_q|_1 exp(-gamma |I_p - I_q|)`` (unit normals,

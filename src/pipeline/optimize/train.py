@@ -285,7 +285,8 @@ class Trainer:
             yield "mvgeo", mv["geo"], lw.lambda_mvgeo
             yield "mv_valid", mv["valid_fraction"], None
         if lw.lambda_smooth > 0 and it >= cfg.start.mv:
-            yield "smooth", terms.normal_smoothness_loss(out.normal_cam.permute(2, 0, 1), target, surface,
+            where = surface & terms.flat_pixels(target, lw.smooth_max_std) if lw.smooth_max_std > 0 else surface
+            yield "smooth", terms.normal_smoothness_loss(out.normal_cam.permute(2, 0, 1), target, where,
                                                          lw.smooth_gamma), lw.lambda_smooth
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
             n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)

@@ -35,7 +35,8 @@ NOT_A_METHOD = (MVS_TSDF, LIMIT, EXACT_DEPTH)  # rows without the method's compo
 YARDSTICKS = (LIMIT, EXACT_DEPTH)  # not methods: never the best row
 # The method's components (CSV column: Markdown header), in the table's column order.
 COMPONENTS = {"dense_init": "dense init", "gcf": "L_gcf", "nor": "L_nor", "mv": "L_mv", "photo_reset": "photo reset",
-              "ncc_support": "NCC support weights", "init_depth_mesh": "init depth in the mesh"}
+              "ncc_support": "NCC support weights", "smooth": "L_smooth (flat patches)",
+              "init_depth_mesh": "init depth in the mesh"}
 
 
 def seed_groups(run: list[str]) -> dict[str, list[str]]:
@@ -77,6 +78,7 @@ def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool |
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
             "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
             "photo_reset": optimize.photo_reset.enabled, "ncc_support": loss.mv_ncc_gamma > 0,
+            "smooth": loss.lambda_smooth > 0,
             "init_depth_mesh": mesh.init_depth_rel_tol > 0}
 
 
