@@ -280,6 +280,32 @@ def test_a_crop_keeps_the_rest_of_the_remembered_source_depth(problem):
     assert float(trainer.last_depth[1][0].sum()) == 6.0
 
 
+def test_flat_pixels_are_computed_once_per_view_and_size_on_the_whole_view(problem, monkeypatch):
+    import sys
+
+    from pipeline.optimize import terms
+
+    train_module = sys.modules["pipeline.optimize.train"]
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config()
+    loss = replace(loss, smooth_max_std=0.05)
+    views = make_views(scene, priors, cfg, loss)
+    trainer = Trainer(init_from_cloud(cloud, scene, cfg), views, cfg, loss)
+    calls = []
+    real = terms.flat_pixels
+    monkeypatch.setattr(terms, "flat_pixels", lambda *a, **k: calls.append(1) or real(*a, **k))
+    full = views.at(0, 1)
+    expected = real(train_module.masked_target(full, cfg.background), 0.05)
+    assert 0 < int(expected.sum()) < expected.numel()  # the test image has flat and textured pixels
+    assert torch.equal(trainer._flat(0, full, None), expected)
+    window = (3, 2, 17, 11)  # the crop's border pixels keep the whole view's neighbourhood
+    assert torch.equal(trainer._flat(0, full, window), expected[2:13, 3:20])
+    assert len(calls) == 1
+    trainer._flat(0, views.at(0, 2), None)
+    trainer._flat(1, full, None)
+    assert len(calls) == 3
+
+
 def test_a_crop_weights_the_densification_statistic_by_its_share_of_the_view(problem, monkeypatch):
     import sys
 

@@ -113,6 +113,8 @@ class Trainer:
         # check of L_mv reads the source views' depth from when they were last rendered
         # (at most num_views - 1 iterations old) instead of rendering them again.
         self.last_depth: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+        # L_smooth's flat pixels per (view, size): they depend on the image alone (_flat).
+        self.flat_cache: dict[tuple[int, tuple[int, int]], torch.Tensor] = {}
         self.it = 0
         self.removed_degenerate = 0
         self.seconds: dict[str, float] = defaultdict(float)
@@ -186,10 +188,7 @@ class Trainer:
         if self.loss.lambda_mv > 0 or self.loss.lambda_mvgeo > 0:
             self._remember_depth(i, full, window, out.depth_median.detach() * (out.alpha.detach() > cfg.surface_alpha))
         rgb = out.features.permute(2, 0, 1) + cfg.background * (1.0 - out.alpha)
-        target = v.image
-        if v.mask is not None:
-            m = v.mask.to(target.dtype)
-            target = target * m + cfg.background * (1.0 - m)
+        target = masked_target(v, cfg.background)
         t2 = clock()
         self.seconds["render"] += t2 - t
 
@@ -285,7 +284,7 @@ class Trainer:
             yield "mvgeo", mv["geo"], lw.lambda_mvgeo
             yield "mv_valid", mv["valid_fraction"], None
         if lw.lambda_smooth > 0 and it >= cfg.start.mv:
-            where = surface & terms.flat_pixels(target, lw.smooth_max_std) if lw.smooth_max_std > 0 else surface
+            where = surface & self._flat(i, full, window) if lw.smooth_max_std > 0 else surface
             yield "smooth", terms.normal_smoothness_loss(out.normal_cam.permute(2, 0, 1), target, where,
                                                          lw.smooth_gamma), lw.lambda_smooth
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
@@ -320,6 +319,20 @@ class Trainer:
                                      views.grey_full[i], self._sources(i, self.last_depth), patch=lw.mv_patch,
                                      min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px,
                                      ncc_gamma=lw.mv_ncc_gamma)
+
+    def _flat(self, i: int, full: ViewData, window: tuple[int, int, int, int] | None) -> torch.Tensor:
+        """:func:`terms.flat_pixels` of view ``i``'s masked target at ``full``'s size, computed
+        once per (view, size) since nothing training changes moves it. It is taken on the whole
+        view, so a crop's border pixels keep their whole neighbourhood; ``window``
+        ``(x0, y0, w, h)`` cuts it to the crop."""
+        key = (i, full.size)
+        if key not in self.flat_cache:
+            self.flat_cache[key] = terms.flat_pixels(masked_target(full, self.cfg.background), self.loss.smooth_max_std)
+        flat = self.flat_cache[key]
+        if window is None:
+            return flat
+        x0, y0, w, h = window
+        return flat[y0:y0 + h, x0:x0 + w]
 
     def _remember_depth(self, i: int, full: ViewData, window: tuple[int, int, int, int] | None,
                         depth: torch.Tensor) -> None:
@@ -412,6 +425,15 @@ class Trainer:
         ops.select(self.params, self.optimizer, keep)
         self.strategy.state.select(keep)
         self.removed_degenerate += int(bad.sum())
+
+
+def masked_target(v: ViewData, background: float) -> torch.Tensor:
+    """``(3, h, w)``: view ``v``'s image with the pixels outside its mask (if any) set to
+    ``background``, what the render composited over that background is compared with."""
+    if v.mask is None:
+        return v.image
+    m = v.mask.to(v.image.dtype)
+    return v.image * m + background * (1.0 - m)
 
 
 def _uncrop(x: torch.Tensor, window: tuple[int, int, int, int], size: tuple[int, int]) -> torch.Tensor:
