@@ -143,7 +143,7 @@ def test_cli_meshes_an_init_folder(tmp_path, capsys):
     assert main(["tsdf", "--init-dir", str(init_dir), "--scene", str(scene_dir), "--out", str(tmp_path / "m.ply")]) == 0
     facts = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     V, F = read_mesh(tmp_path / "m.ply")
-    assert len(F) == facts["triangles_kept"] > 1000
+    assert len(F) == facts["triangles_kept"] + facts["hole_triangles_kept"] and facts["triangles_kept"] > 1000
     # At 200x150 a pixel (~1.8 mm) is coarser than a voxel (0.92 mm): a looser bound than above.
     assert np.median(distance_to_spheres(V, scene)) < facts["voxel_mm"]
 
@@ -174,7 +174,8 @@ def test_every_part_of_a_multi_part_object_survives(tmp_path, capsys):
     assert "warning" not in captured.err
     assert f"fused {facts['triangles_fused']} triangles" in captured.err
     V, F = read_mesh(out)
-    assert len(F) == facts["triangles_kept"] < facts["triangles_fused"]
+    assert facts["triangles_kept"] < facts["triangles_fused"]
+    assert len(F) == facts["triangles_kept"] + facts["hole_triangles_kept"]
     assert facts["components_kept"] == len(parts)
     voxel = facts["voxel_mm"]
     for centre, radius in parts:

@@ -31,6 +31,9 @@ class MeshConfig:
     region: str = "auto"  # auto (when no mask cuts the fused depth) | on | off
     region_plane_share: float = 0.15  # a plane is the table when at least this share of depth points lie on it
     region_plane_margin_norm: float = 0.008  # the region starts this far above the table (unit-sphere radii)
+    # Holes whose boundary fits in a sphere of this radius (unit-sphere radii) are closed where
+    # the fused depth maps support the new triangles (meshing/holes.py); 0: off.
+    fill_holes_norm: float = 0.0
 
     def __post_init__(self) -> None:
         if self.region not in ("auto", "on", "off"):
@@ -45,6 +48,8 @@ class MeshConfig:
             raise ConfigError("mesh: alpha_min must be in [0, 1) and virtual_per_pair >= 0")
         if not 0 < self.voxel_norm < self.trunc_norm:
             raise ConfigError(f"mesh: need 0 < voxel_norm < trunc_norm, got {self.voxel_norm}, {self.trunc_norm}")
+        if not 0 <= self.fill_holes_norm < float("inf"):
+            raise ConfigError(f"mesh.fill_holes_norm must be finite and >= 0, got {self.fill_holes_norm}")
         if not 0 <= self.min_component_fraction <= 1:
             raise ConfigError(f"mesh.min_component_fraction must be in [0, 1], got {self.min_component_fraction}")
 

@@ -128,7 +128,7 @@ def mesh_from_surfels(params: SurfelParams, scene: Scene, cfg: MeshConfig, backe
     if not (ds > 0).any():
         raise tsdf.FusionError(f"{scene.source}: the surfels render no depth above alpha {cfg.alpha_min} in any view "
                                "(an empty or transparent model: did training fail?)")
-    mesh, fused, facts = tsdf.fuse_in_region(ds, Ks, Ts, cs, scene.norm_to_world, cfg, masked=masks is not None)
+    mesh, fused, facts = tsdf.fuse_in_region(ds, Ks, Ts, cs, scene.norm_to_world, cfg, masks=masks)
     if len(mesh.triangles) == 0:
         raise tsdf.FusionError(f"{scene.source}: the surfels' rendered depth fuses into an empty mesh; nothing written")
     voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)

@@ -29,6 +29,7 @@ from pipeline.data.scene import Scene
 from pipeline.errors import InputError
 from pipeline.init.io import load_init_depths, stacked_depths_mm
 from pipeline.meshing import region as bounding
+from pipeline.meshing.holes import fill_supported_holes
 
 # Pixels whose surface is seen beyond this incidence are fused with a longer truncation
 # (module docstring; measured in docs/evaluation.md, "Exact depth through the same meshing").
@@ -239,19 +240,25 @@ def depth_max_mm(world_to_cam: np.ndarray, norm_to_world: np.ndarray) -> float:
 
 
 def fuse_in_region(depths_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, colors: np.ndarray | None,
-                   norm_to_world: np.ndarray, cfg: MeshConfig, masked: bool) -> tuple[Mesh, np.ndarray, dict]:
-    """What both meshers do with their depth maps: cut them to ``cfg.region`` (not when
-    ``masked`` under ``auto``: :func:`pipeline.meshing.region.cut_to_region`), fuse at
-    ``cfg``'s sizes out to :func:`depth_max_mm`, drop the triangles outside the region and
-    keep the components :func:`keep_components` keeps. Returns the mesh (possibly empty),
-    the depth maps fused and the facts (region, components)."""
-    depths, region, region_facts = bounding.cut_to_region(depths_mm, K, world_to_cam, norm_to_world, cfg, masked)
+                   norm_to_world: np.ndarray, cfg: MeshConfig, masks: np.ndarray | None) -> tuple[Mesh, np.ndarray, dict]:
+    """What every mesher does with its depth maps: cut them to ``cfg.region`` (not when
+    ``masks`` cut them under ``auto``: :func:`pipeline.meshing.region.cut_to_region`), fuse at
+    ``cfg``'s sizes out to :func:`depth_max_mm`, drop the triangles outside the region, keep
+    the components :func:`keep_components` keeps and close the holes up to
+    ``cfg.fill_holes_norm`` that the depth maps support (:mod:`pipeline.meshing.holes`, with
+    the truncation as tolerance). ``masks``: ``(M, H, W)`` bool of the first ``M`` views
+    (the input views; their depth is already zero outside them), or ``None``. Returns the
+    mesh (possibly empty), the depth maps fused and the facts (region, components, holes)."""
+    depths, region, region_facts = bounding.cut_to_region(depths_mm, K, world_to_cam, norm_to_world, cfg,
+                                                          masks is not None)
     voxel, trunc = cfg.sizes_mm(float(norm_to_world[0, 0]))
     mesh = fuse_depth_maps(depths, K, world_to_cam, colors, voxel, trunc, depth_max_mm(world_to_cam, norm_to_world))
     if region is not None:
         mesh.triangles = bounding.crop_mesh_vertices(mesh.vertices_mm, mesh.triangles, region)
     mesh, facts = keep_components(mesh, cfg.min_component_fraction)
-    return mesh, depths, {**region_facts, **facts}
+    mesh.triangles, hole_facts = fill_supported_holes(mesh.vertices_mm, mesh.triangles, depths, K, world_to_cam, masks,
+                                                      cfg.fill_holes_norm * float(norm_to_world[0, 0]), trunc)
+    return mesh, depths, {**region_facts, **facts, **hole_facts}
 
 
 def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, cfg: MeshConfig) -> tuple[Mesh, dict]:
@@ -261,7 +268,7 @@ def mesh_from_init(init_dir: str | Path, scene_dir: str | Path, cfg: MeshConfig)
     scene = load_scene(scene_dir, view_ids=None)
     depths = stacked_depths_mm(load_init_depths(init_dir, scene, needed_by="TSDF fusion"))
     mesh, _, facts = fuse_in_region(depths, scene.K, scene.world_to_cam, scene.images, scene.norm_to_world, cfg,
-                                    masked=scene.masks is not None)
+                                    masks=scene.masks)
     if len(mesh.triangles) == 0:
         raise FusionError(f"{init_dir}: the depth maps fuse into an empty mesh; nothing written")
     voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)

@@ -62,5 +62,5 @@ def exact_depth_mesh(gt_vertices_mm: np.ndarray, gt_triangles: np.ndarray, scene
     if not (depths > 0).any():
         raise SceneError(f"{scene.source}: the ground truth covers no pixel of the input views")
     mesh, _, _ = tsdf.fuse_in_region(depths, scene.K, scene.world_to_cam, None, scene.norm_to_world, cfg,
-                                     masked=masks is not None)
+                                     masks=masks)
     return mesh
