@@ -1,8 +1,8 @@
 """Closing small holes in a fused mesh where the depth maps it was fused from support it.
 
-A TSDF mesh of three views has small holes inside surfaces the views see well: pixels whose
-rendered alpha stayed below the threshold, voxels where two views' signed distances cancel
-(docs/optimize.md, "Holes in the mesh"). Each hole whose boundary loop fits
+A TSDF mesh of three views has small holes inside surfaces the views see well, mostly at
+steps in depth: the edge between a surface and one behind it, whose wall the views see
+end-on, forms no zero crossing (docs/optimize.md, "Holes in the mesh"). Each hole whose boundary loop fits
 in a sphere of radius ``radius_mm`` is triangulated (VTK's fill-holes filter, through
 Open3D; no vertex is added). A new triangle is kept only where the depth maps agree with
 it: at each of its sample points (:data:`SAMPLE_BARYCENTRIC`) some view's depth lies within
