@@ -41,7 +41,8 @@ from numba import njit, prange
 
 from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, T_MIN, UV_MAX
 
-TILE = 16
+TILE_SHIFT = 4
+TILE = 1 << TILE_SHIFT  # a tile's local pixel index (py - y0) * TILE + px - x0 fits the 8 low bits of R_FLAGS
 _CHUNK = 256  # surfels per prange iteration of the per-surfel kernels (scratch arrays allocated once)
 
 # Per-surfel geometry (float64) computed by ``preprocess``.
@@ -72,7 +73,7 @@ S_FEATURE = 17  # C
 S_FIXED = 17
 
 # One record per composited (pixel, surfel) pair, written by the forward for the backward.
-R_FLAGS = 0  # local pixel index + 256 * use3 + 512 * capped (exact in float32)
+R_FLAGS = 0  # tile-local pixel index (stride TILE) + 256 * use3 + 512 * capped (exact in float32)
 R_T = 1  # transmittance before the pair
 R_A = 2  # alpha
 R_Z = 3  # depth
@@ -291,43 +292,6 @@ def _tile_bounds(t, n_tx, width, height):
 
 
 @njit(inline="always")
-def _row_span(x_lo, x_hi, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max):
-    """Pixels ``x_lo..x_hi`` of a row that can pass ``rho <= rho_max`` (conservative).
-
-    ``rho2 <= rho_max`` is the interval ``|x - cx| <= sqrt(rho_max / 2 - dy^2)``;
-    ``rho3 <= rho_max`` is ``f(x) = a x^2 + 2 b x + c <= 0`` (``q`` is affine in ``x``):
-    the interval between its roots when ``a > 0``, otherwise the whole row. The hull of
-    the two, widened by a rounding margin. Only an accelerator: the per-pixel test decides.
-    """
-    lo = math.inf
-    hi = -math.inf
-    h2 = 0.5 * rho_max - dy2
-    if h2 >= 0.0:
-        h = math.sqrt(h2)
-        lo = cx - h
-        hi = cx + h
-    a = ax0 * ax0 + ax1 * ax1 - rho_max * ax2 * ax2
-    b = ax0 * qr0 + ax1 * qr1 - rho_max * ax2 * qr2
-    c = qr0 * qr0 + qr1 * qr1 - rho_max * qr2 * qr2
-    if a > 1e-12 * (ax0 * ax0 + ax1 * ax1 + rho_max * ax2 * ax2):
-        disc = b * b - a * c
-        if disc >= 0.0:
-            root = math.sqrt(disc)
-            # Numerically stable roots of a x^2 + 2 b x + c.
-            t = -(b + root) if b >= 0.0 else -(b - root)
-            r1 = t / a
-            r2 = c / t if t != 0.0 else r1
-            lo = min(lo, min(r1, r2))
-            hi = max(hi, max(r1, r2))
-    else:
-        return x_lo, x_hi
-    if not (lo <= hi):
-        return 0, -1
-    margin = 1e-3 + 1e-9 * (abs(lo) + abs(hi))
-    return max(x_lo, int(math.ceil(max(lo - margin, x_lo - 1.0)))), min(x_hi, int(math.floor(min(hi + margin, x_hi + 1.0))))
-
-
-@njit(inline="always")
 def _pair(x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, inv_zc, near, o):
     """One (pixel, surfel) pair: ``(ok, alpha, a_raw, G, z, 1/z, use3, u, v, 1/q2)``.
 
@@ -386,22 +350,32 @@ def forward(
     C = feat.shape[1]
     mscale = far / (far - near)
     for wk in prange(worker_start.shape[0] - 1):
+        # Per-pixel state of one tile, local index p = (py - y0) * TILE + px - x0.
+        Tr = np.empty(TILE * TILE)
+        Ws = np.empty(TILE * TILE)
+        M1 = np.empty(TILE * TILE)
+        M2 = np.empty(TILE * TILE)
+        D = np.empty(TILE * TILE)
+        med = np.empty(TILE * TILE)
+        F = np.empty((TILE * TILE, C))
+        N = np.empty((TILE * TILE, 3))
+        medi = np.empty(TILE * TILE, np.int32)
+        done = np.empty(TILE * TILE, np.bool_)
+        fs = np.empty(C)
         for it in range(worker_start[wk], worker_start[wk + 1]):
             t = worker_tiles[it]
             x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
-            tw = x1 - x0
-            npx = tw * (y1 - y0)
-            Tr = np.ones(npx)
-            Ws = np.zeros(npx)
-            M1 = np.zeros(npx)
-            M2 = np.zeros(npx)
-            D = np.zeros(npx)
-            med = np.zeros(npx)
-            F = np.zeros((npx, C))
-            N = np.zeros((npx, 3))
-            medi = np.full(npx, -1, np.int32)
-            done = np.zeros(npx, np.bool_)
-            fs = np.empty(C)
+            npx = (x1 - x0) * (y1 - y0)
+            Tr[:] = 1.0
+            Ws[:] = 0.0
+            M1[:] = 0.0
+            M2[:] = 0.0
+            D[:] = 0.0
+            med[:] = 0.0
+            F[:] = 0.0
+            N[:] = 0.0
+            medi[:] = -1
+            done[:] = False
             n_done = 0
             start = tile_start[t]
             r = rec_tile_start[t]
@@ -430,9 +404,8 @@ def forward(
                     qr0 = y * ay0 + a00
                     qr1 = y * ay1 + a01
                     qr2 = y * ay2 + a02
-                    row = (py - y0) * tw - x0
-                    xa, xb = _row_span(max(box[s, 0], x0), min(box[s, 1], x1 - 1), dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max)
-                    for px in range(xa, xb + 1):
+                    row = (py - y0) * TILE - x0
+                    for px in range(max(box[s, 0], x0), min(box[s, 1], x1 - 1) + 1):
                         p = row + px
                         if done[p]:
                             continue
@@ -462,7 +435,7 @@ def forward(
                             med[p] = z
                             medi[p] = j - start
                         Tr[p] = T_next
-                        flags = (px - x0) + (py - y0) * tw + (256 if use3 else 0) + (512 if a_raw >= ALPHA_MAX else 0)
+                        flags = p + (256 if use3 else 0) + (512 if a_raw >= ALPHA_MAX else 0)
                         rec[r, R_FLAGS] = flags
                         rec[r, R_T] = T
                         rec[r, R_A] = a
@@ -475,7 +448,7 @@ def forward(
                 rec_count[j] = r - rec_start[j]
             for py in range(y0, y1):
                 for px in range(x0, x1):
-                    p = (py - y0) * tw + px - x0
+                    p = (py - y0) * TILE + px - x0
                     for c in range(C):
                         out_feat[py, px, c] = F[p, c]
                     for r in range(3):
@@ -516,17 +489,18 @@ def backward(
     C = feat.shape[1]
     mscale = far / (far - near)
     for wk in prange(worker_start.shape[0] - 1):
+        S = np.empty(TILE * TILE)
+        # Per-pixel cotangents and totals of one tile, one contiguous row per pixel (see _PX_*).
+        px_tab = np.empty((TILE * TILE, _PX_FEAT + C))
+        gfe = np.empty(C)
+        fs = np.empty(C)
         for it in range(worker_start[wk], worker_start[wk + 1]):
             t = worker_tiles[it]
             x0, y0, x1, y1 = _tile_bounds(t, n_tx, width, height)
-            tw = x1 - x0
-            npx = tw * (y1 - y0)
-            S = np.zeros(npx)
-            # Per-pixel cotangents and totals, one contiguous row per pixel (see _PX_*).
-            px_tab = np.empty((npx, _PX_FEAT + C))
+            S[:] = 0.0
             for py in range(y0, y1):
                 for px in range(x0, x1):
-                    p = (py - y0) * tw + px - x0
+                    p = (py - y0) * TILE + px - x0
                     inv = 1.0 / (1.0 - aux_T[py, px] + depth_eps)
                     ge = float(g_depth[py, px])
                     gd = float(g_dist[py, px])
@@ -544,8 +518,6 @@ def backward(
                     for c in range(C):
                         px_tab[p, _PX_FEAT + c] = float(g_feat[py, px, c])
             start = tile_start[t]
-            gfe = np.empty(C)
-            fs = np.empty(C)
             for j in range(tile_start[t + 1] - 1, start - 1, -1):
                 li = j - start
                 s = tile_list[j]
@@ -561,9 +533,8 @@ def backward(
                 for r in range(rec_start[j], rec_start[j] + rec_count[j]):
                     flags = int(rec[r, R_FLAGS])
                     p = flags & 255
-                    dpy = p // tw
-                    px = x0 + p - dpy * tw
-                    py = y0 + dpy
+                    px = x0 + (p & (TILE - 1))
+                    py = y0 + (p >> TILE_SHIFT)
                     x = float(px)
                     y = float(py)
                     T = float(rec[r, R_T])
