@@ -54,7 +54,7 @@ REF_BYTES_PER_PAIR = 150
 REF_BLOCK = 8
 KERNEL_PARTS = {  # part of a render -> the cpu backend's numba kernels it runs
     "set-up and binning": ("preprocess", "bin_tiles", "schedule_tiles"),
-    "forward compositing": ("forward",),
+    "forward compositing": ("gather_entries", "forward"),
     "backward compositing": ("backward",),
     "per-surfel reduction": ("reduce_and_chain",),
 }
@@ -180,7 +180,7 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
         peak_mb=None if peak is None else round(peak, 1),
         kept_mb=round(
             (int(g.rec_tile_start[-1]) * K.R_SIZE * s.means.element_size() + g.num_pairs * (K.S_FIXED + 3) * 8
-             + g.tile_list.nbytes + g.slot_of_emit.nbytes) / 2**20, 1),  # fmt: skip
+             + g.num_pairs * (K.E_FEAT + 3) * 8 + g.tile_list.nbytes + g.slot_of_entry.nbytes) / 2**20, 1),  # fmt: skip
         load_avg_1min=[round(load_before, 2), round(os.getloadavg()[0], 2)],
     )
     if backend == "cpu":
@@ -277,7 +277,7 @@ def run(args: argparse.Namespace) -> int:
     cases = QUICK if args.quick else [(W, H, N) for (W, H) in SIZES for N in COUNTS]
     compile_s = cpu_backend.warm_up()
     # numba counts, per kernel, the signatures it had to compile rather than load.
-    kernels = (K.preprocess, K.bin_tiles, K.schedule_tiles, K.forward, K.backward, K.reduce_and_chain)
+    kernels = (K.preprocess, K.bin_tiles, K.schedule_tiles, K.gather_entries, K.forward, K.backward, K.reduce_and_chain)
     misses = sum(sum(d.stats.cache_misses.values()) for d in kernels)
     meta = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",

@@ -1,8 +1,9 @@
 """numba kernels of the ``cpu`` backend.
 
 Pipeline: ``preprocess`` (per surfel: ray transform, facing normal, support box) ->
-tile binning -> ``forward`` -> ``backward`` -> ``reduce_and_chain`` (per surfel:
-sum of its pair gradients, then the chain rule back to means, quats, scales).
+tile binning -> ``gather_entries`` (each list entry's surfel data, in list order) ->
+``forward`` -> ``backward`` -> ``reduce_and_chain`` (per surfel: sum of its pair
+gradients, then the chain rule back to means, quats, scales).
 
 Per-pair algebra. With ``T`` the ray transform (rows ``T_u, T_v, T_w``), the
 intersection ``q = k x l`` of pixel ``(x, y)`` is affine in the pixel:
@@ -26,7 +27,8 @@ entries in reverse, so each pixel sees its pairs back to front, and writes what 
 The per-surfel sum runs over slots in a fixed order. No atomics, no per-thread
 buffers: results are bitwise identical whatever the number of threads or the
 scheduling. Memory kept for the backward grows with the pairs (records: the boxes'
-pixel count x 7 values, an upper bound; slots: the (tile, surfel) pairs x (17 + C)).
+pixel count x 7 values, an upper bound; gathered entries and slots: the (tile, surfel)
+pairs x (24 + C) and (17 + C) float64).
 
 Arithmetic is float64 inside; inputs may be float32 or float64 and outputs, gradients
 and pair records take the input dtype. The per-pixel state kept for the backward is
@@ -57,6 +59,15 @@ GEO_OPACITY = 13
 GEO_INV_DET = 14  # 1 / det T (z = det / q2, so 1 / z = q2 / det)
 GEO_INV_ZC = 15  # 1 / centre depth (low-pass branch)
 GEO_SIZE = 16
+
+# Per (tile, surfel) entry, gathered in list order by ``gather_entries`` so the compositing
+# kernels read their surfels' data sequentially (the surfel ids of a tile's list are
+# scattered over tens of MB: each entry's loads were cache misses). Columns 0..GEO_SIZE-1
+# are the surfel's ``geo`` row; every value is held exactly (float64).
+E_ZC = GEO_SIZE  # centre depth (as stored in Tm)
+E_NRM = GEO_SIZE + 1  # 3: camera-facing normal
+E_BOX = GEO_SIZE + 4  # 4: support box xmin, xmax, ymin, ymax
+E_FEAT = GEO_SIZE + 8  # C: features
 
 # Gradient slot per (tile, surfel) pair; linear in the pair terms, so slots are summed
 # per surfel before ``_slot_to_dT`` turns them into dL/dT.
@@ -203,10 +214,12 @@ def bin_tiles(visible, depth, box, n_tx, n_ty):
     ``visible``: the drawn surfel ids, increasing; ``depth``: centre depths. Within a
     tile the list is sorted by ``(depth, id)`` (a stable sort of the id-ordered list,
     one tile per thread). Returns ``tile_start (n_tiles + 1)``, ``tile_list (n_pairs)``
-    surfel ids, ``emit_start (P + 1)`` and ``slot_of_emit``: surfel ``s``'s pairs, in
-    its own row-major tile order, sit at list positions
-    ``slot_of_emit[emit_start[s]:emit_start[s + 1]]``; and ``rec_tile_start``, each
-    tile's region in the pair-record buffer (its boxes' pixel count: an upper bound).
+    surfel ids, ``emit_start (P + 1)`` and ``slot_of_entry (n_pairs)``: the gradient slot
+    of list entry ``j``, such that surfel ``s``'s slots are
+    ``emit_start[s]:emit_start[s + 1]``, in its own row-major tile order (the backward
+    scatters each entry's slot there, so the per-surfel sum reads them contiguously);
+    and ``rec_tile_start``, each tile's region in the pair-record buffer (its boxes' pixel
+    count: an upper bound).
     """
     P = box.shape[0]
     n_tiles = n_tx * n_ty
@@ -229,7 +242,7 @@ def bin_tiles(visible, depth, box, n_tx, n_ty):
                 t = ty * n_tx + tx
                 tile_list[fill[t]] = s
                 fill[t] += 1
-    slot_of_emit = np.empty(tile_start[-1], np.int64)
+    slot_of_entry = np.empty(tile_start[-1], np.int64)
     capacity = np.zeros(n_tiles + 1, np.int64)
     for t in prange(n_tiles):
         a, b = tile_start[t], tile_start[t + 1]
@@ -244,11 +257,31 @@ def bin_tiles(visible, depth, box, n_tx, n_ty):
         for j in range(a, b):
             s = tile_list[j]
             tx0, ty0 = box[s, 0] // TILE, box[s, 2] // TILE
-            slot_of_emit[emit_start[s] + (ty - ty0) * (box[s, 1] // TILE - tx0 + 1) + tx - tx0] = j
+            slot_of_entry[j] = emit_start[s] + (ty - ty0) * (box[s, 1] // TILE - tx0 + 1) + tx - tx0
             rows = min(box[s, 3], ty * TILE + TILE - 1) - max(box[s, 2], ty * TILE) + 1
             cap += rows * (min(box[s, 1], tx * TILE + TILE - 1) - max(box[s, 0], tx * TILE) + 1)
         capacity[t + 1] = cap
-    return tile_start, tile_list, emit_start, slot_of_emit, np.cumsum(capacity)
+    return tile_start, tile_list, emit_start, slot_of_entry, np.cumsum(capacity)
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def gather_entries(tile_list, geo, Tm, nrm, box, feat, ent):
+    """``ent[j]`` = the data of surfel ``tile_list[j]`` that the compositing kernels read
+    (see ``E_*``), for every list entry ``j``."""
+    C = feat.shape[1]
+    n = tile_list.shape[0]
+    for chunk in prange(-(-n // _CHUNK)):
+        for j in range(chunk * _CHUNK, min(n, (chunk + 1) * _CHUNK)):
+            s = tile_list[j]
+            for k in range(GEO_SIZE):
+                ent[j, k] = geo[s, k]
+            ent[j, E_ZC] = float(Tm[s, 8])
+            for k in range(3):
+                ent[j, E_NRM + k] = float(nrm[s, k])
+            for k in range(4):
+                ent[j, E_BOX + k] = float(box[s, k])
+            for c in range(C):
+                ent[j, E_FEAT + c] = float(feat[s, c])
 
 
 @njit(cache=True)
@@ -333,7 +366,7 @@ def _pair(x, dy2, qr0, qr1, qr2, ax0, ax1, ax2, cx, rho_max, det, inv_det, zc, i
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def forward(
-    tile_start, tile_list, worker_start, worker_tiles, box, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    tile_start, worker_start, worker_tiles, ent, Rwc, width, n_tx, near, far, depth_eps,
     out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld, out_dist,
     aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec_tile_start, rec, rec_start, rec_count,
 ):  # fmt: skip
@@ -347,7 +380,7 @@ def forward(
     replays exactly these pairs.
     """
     height = out_alpha.shape[0]
-    C = feat.shape[1]
+    C = ent.shape[1] - E_FEAT
     mscale = far / (far - near)
     for wk in prange(worker_start.shape[0] - 1):
         # Per-pixel state of one tile, local index p = (py - y0) * TILE + px - x0.
@@ -386,18 +419,19 @@ def forward(
                 if n_done == npx:
                     break
                 rec_start[j] = r
-                s = tile_list[j]
-                ax0, ax1, ax2 = geo[s, GEO_AX], geo[s, GEO_AX + 1], geo[s, GEO_AX + 2]
-                ay0, ay1, ay2 = geo[s, GEO_AY], geo[s, GEO_AY + 1], geo[s, GEO_AY + 2]
-                a00, a01, a02 = geo[s, GEO_A0], geo[s, GEO_A0 + 1], geo[s, GEO_A0 + 2]
-                det, cx, cy = geo[s, GEO_DET], geo[s, GEO_CX], geo[s, GEO_CY]
-                rho_max, o = geo[s, GEO_RHO_MAX], geo[s, GEO_OPACITY]
-                inv_det, inv_zc = geo[s, GEO_INV_DET], geo[s, GEO_INV_ZC]
-                zc = float(Tm[s, 8])
+                e = ent[j]
+                ax0, ax1, ax2 = e[GEO_AX], e[GEO_AX + 1], e[GEO_AX + 2]
+                ay0, ay1, ay2 = e[GEO_AY], e[GEO_AY + 1], e[GEO_AY + 2]
+                a00, a01, a02 = e[GEO_A0], e[GEO_A0 + 1], e[GEO_A0 + 2]
+                det, cx, cy = e[GEO_DET], e[GEO_CX], e[GEO_CY]
+                rho_max, o = e[GEO_RHO_MAX], e[GEO_OPACITY]
+                inv_det, inv_zc = e[GEO_INV_DET], e[GEO_INV_ZC]
+                zc = e[E_ZC]
                 for c in range(C):
-                    fs[c] = feat[s, c]
-                n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
-                for py in range(max(box[s, 2], y0), min(box[s, 3], y1 - 1) + 1):
+                    fs[c] = e[E_FEAT + c]
+                n0, n1, n2 = e[E_NRM], e[E_NRM + 1], e[E_NRM + 2]
+                bx0, bx1, by0, by1 = int(e[E_BOX]), int(e[E_BOX + 1]), int(e[E_BOX + 2]), int(e[E_BOX + 3])
+                for py in range(max(by0, y0), min(by1, y1 - 1) + 1):
                     y = float(py)
                     dy = y - cy
                     dy2 = dy * dy
@@ -405,7 +439,7 @@ def forward(
                     qr1 = y * ay1 + a01
                     qr2 = y * ay2 + a02
                     row = (py - y0) * TILE - x0
-                    for px in range(max(box[s, 0], x0), min(box[s, 1], x1 - 1) + 1):
+                    for px in range(max(bx0, x0), min(bx1, x1 - 1) + 1):
                         p = row + px
                         if done[p]:
                             continue
@@ -471,11 +505,12 @@ def forward(
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def backward(
-    tile_start, tile_list, worker_start, worker_tiles, geo, Tm, nrm, feat, Rwc, width, n_tx, near, far, depth_eps,
+    tile_start, slot_of_entry, worker_start, worker_tiles, ent, Rwc, width, n_tx, near, far, depth_eps,
     aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec, rec_start, rec_count,
     g_feat, g_alpha, g_depth, g_med, g_ncam, g_nworld, g_dist, slots,
 ):  # fmt: skip
-    """Pair gradients into ``slots`` (n_pairs, 17 + C), from the forward's records.
+    """Pair gradients into ``slots`` (n_pairs, 17 + C; entry ``j``'s at row
+    ``slot_of_entry[j]``), from the forward's records.
 
     Per pixel, back to front over its composited pairs:
     ``dL/da_i = T_i v_i - S_i / (1 - a_i)``, ``S_i = sum_{k>i} w_k v_k``,
@@ -486,7 +521,7 @@ def backward(
     within an entry each pixel appears once, so every pixel sees its pairs back to front.
     """
     height = aux_T.shape[0]
-    C = feat.shape[1]
+    C = ent.shape[1] - E_FEAT
     mscale = far / (far - near)
     for wk in prange(worker_start.shape[0] - 1):
         S = np.empty(TILE * TILE)
@@ -520,16 +555,16 @@ def backward(
             start = tile_start[t]
             for j in range(tile_start[t + 1] - 1, start - 1, -1):
                 li = j - start
-                s = tile_list[j]
+                e = ent[j]
                 # Scalar accumulators stay in registers (see S_* for their meaning).
                 gax0 = gax1 = gax2 = gay0 = gay1 = gay2 = g00 = g01 = g02 = 0.0
                 gdet = gcx = gcy = gtw2 = gop = gn_0 = gn_1 = gn_2 = 0.0
                 gfe[:] = 0.0
-                cx, cy = geo[s, GEO_CX], geo[s, GEO_CY]
-                inv_o = 1.0 / geo[s, GEO_OPACITY]
+                cx, cy = e[GEO_CX], e[GEO_CY]
+                inv_o = 1.0 / e[GEO_OPACITY]
                 for c in range(C):
-                    fs[c] = feat[s, c]
-                n0, n1, n2 = float(nrm[s, 0]), float(nrm[s, 1]), float(nrm[s, 2])
+                    fs[c] = e[E_FEAT + c]
+                n0, n1, n2 = e[E_NRM], e[E_NRM + 1], e[E_NRM + 2]
                 for r in range(rec_start[j], rec_start[j] + rec_count[j]):
                     flags = int(rec[r, R_FLAGS])
                     p = flags & 255
@@ -587,14 +622,15 @@ def backward(
                         gcx -= 4.0 * (x - cx) * drho
                         gcy -= 4.0 * (y - cy) * drho
                         gtw2 += dz
-                slots[j, S_AX], slots[j, S_AX + 1], slots[j, S_AX + 2] = gax0, gax1, gax2
-                slots[j, S_AY], slots[j, S_AY + 1], slots[j, S_AY + 2] = gay0, gay1, gay2
-                slots[j, S_A0], slots[j, S_A0 + 1], slots[j, S_A0 + 2] = g00, g01, g02
-                slots[j, S_DET], slots[j, S_CX], slots[j, S_CY], slots[j, S_TW2] = gdet, gcx, gcy, gtw2
-                slots[j, S_OPACITY] = gop
-                slots[j, S_NORMAL], slots[j, S_NORMAL + 1], slots[j, S_NORMAL + 2] = gn_0, gn_1, gn_2
+                sl = slot_of_entry[j]
+                slots[sl, S_AX], slots[sl, S_AX + 1], slots[sl, S_AX + 2] = gax0, gax1, gax2
+                slots[sl, S_AY], slots[sl, S_AY + 1], slots[sl, S_AY + 2] = gay0, gay1, gay2
+                slots[sl, S_A0], slots[sl, S_A0 + 1], slots[sl, S_A0 + 2] = g00, g01, g02
+                slots[sl, S_DET], slots[sl, S_CX], slots[sl, S_CY], slots[sl, S_TW2] = gdet, gcx, gcy, gtw2
+                slots[sl, S_OPACITY] = gop
+                slots[sl, S_NORMAL], slots[sl, S_NORMAL + 1], slots[sl, S_NORMAL + 2] = gn_0, gn_1, gn_2
                 for c in range(C):
-                    slots[j, S_FEATURE + c] = gfe[c]
+                    slots[sl, S_FEATURE + c] = gfe[c]
 
 
 @njit(inline="always")
@@ -631,7 +667,7 @@ def _slot_to_dT(g, T, dT):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def reduce_and_chain(
-    emit_start, slot_of_emit, slots, quats, scales, means, Tm, nrm, K, Rwc,
+    emit_start, slots, quats, scales, means, Tm, nrm, K, Rwc,
     d_means, d_quats, d_scales, d_opac, d_feat, d_means2d,
 ):  # fmt: skip
     """Per surfel: sum its slots in a fixed order (deterministic), turn them into
@@ -653,9 +689,8 @@ def reduce_and_chain(
                 continue  # never drawn: all gradients stay zero
             g[:] = 0.0
             for e in range(emit_start[i], emit_start[i + 1]):
-                j = slot_of_emit[e]
                 for k in range(G):
-                    g[k] += slots[j, k]
+                    g[k] += slots[e, k]
             for k in range(9):
                 T[k] = float(Tm[i, k])
             _slot_to_dT(g, T, dT)

@@ -44,7 +44,7 @@ class Geometry:
     tile_start: np.ndarray
     tile_list: np.ndarray
     emit_start: np.ndarray
-    slot_of_emit: np.ndarray
+    slot_of_entry: np.ndarray
     rec_tile_start: np.ndarray  # each tile's region of the pair-record buffer
     worker_start: np.ndarray  # tiles per thread, balanced by their pixel-surfel pairs
     worker_tiles: np.ndarray
@@ -151,12 +151,12 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
     binned = K.bin_tiles(np.flatnonzero(radii > 0), depth, box, n_tx, n_ty)
-    tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start = binned
+    tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = binned
     # Cost of a tile ~ its pixel-surfel pairs plus a per-surfel set-up.
     cost = np.diff(rec_tile_start).astype(np.float64) + _ENTRY_COST * np.diff(tile_start)
     worker_start, worker_tiles = K.schedule_tiles(cost, numba.get_num_threads())
     return Geometry(
-        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_emit, rec_tile_start,
+        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
         worker_start, worker_tiles, n_tx,
     )  # fmt: skip
 
@@ -176,22 +176,23 @@ class _Rasterize(torch.autograd.Function):
         specs = [((H, W), np.float64)] * 5 + [((H, W), np.int32)]
         n_rec, n_pairs = int(geom.rec_tile_start[-1]), geom.num_pairs
         specs += [((n_rec, K.R_SIZE), dtype), ((n_pairs,), np.int64), ((n_pairs,), np.int64)]
+        specs += [((n_pairs, K.E_FEAT + C), np.float64)]
         scratch = SCRATCH.take("forward", _carve_bytes(specs))
         weakref.finalize(ctx, SCRATCH.give, "forward", scratch)
-        *aux, med_local, rec, rec_start, rec_count = _carve(scratch, specs)
+        *aux, med_local, rec, rec_start, rec_count, ent = _carve(scratch, specs)
+        K.gather_entries(geom.tile_list, geom.geo, geom.Tm, geom.nrm, geom.box, feat, ent)
         K.forward(
-            geom.tile_start, geom.tile_list, geom.worker_start, geom.worker_tiles, geom.box, geom.geo, geom.Tm,
-            geom.nrm, feat, Rwc, W, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, med_local,
-            geom.rec_tile_start, rec, rec_start, rec_count,
+            geom.tile_start, geom.worker_start, geom.worker_tiles, ent, Rwc, W, geom.n_tx, camera.near, camera.far,
+            depth_eps, *maps, *aux, med_local, geom.rec_tile_start, rec, rec_start, rec_count,
         )  # fmt: skip
-        ctx.state = (geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count)
+        ctx.state = (geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count, ent)
         ctx.save_for_backward(means, quats, scales)
         return tuple(torch.from_numpy(a) for a in maps)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
-        geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count = ctx.state
+        geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count, ent = ctx.state
         means, quats, scales = ctx.saved_tensors
         P, C = feat.shape
         Kc, Rwc, _ = _camera_arrays(camera)
@@ -199,17 +200,16 @@ class _Rasterize(torch.autograd.Function):
         slot_buf = SCRATCH.take("backward", _carve_bytes(slot_spec))
         (slots,) = _carve(slot_buf, slot_spec)
         K.backward(
-            geom.tile_start, geom.tile_list, geom.worker_start, geom.worker_tiles, geom.geo, geom.Tm, geom.nrm,
-            feat, Rwc, camera.width, geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec,
-            rec_start, rec_count, *(_np(g) for g in grads), slots,
+            geom.tile_start, geom.slot_of_entry, geom.worker_start, geom.worker_tiles, ent, Rwc, camera.width,
+            geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec, rec_start, rec_count,
+            *(_np(g) for g in grads), slots,
         )  # fmt: skip
         dtype = geom.Tm.dtype
         out = [np.zeros((P, 3), dtype), np.zeros((P, 4), dtype), np.zeros((P, 2), dtype), np.zeros(P, dtype)]
         out += [np.zeros((P, C), dtype), np.zeros((P, 2), dtype)]
         K.reduce_and_chain(
-            geom.emit_start, geom.slot_of_emit, slots, _np(quats), _np(scales), _np(means), geom.Tm, geom.nrm,
-            Kc, Rwc, *out,
-        )  # fmt: skip
+            geom.emit_start, slots, _np(quats), _np(scales), _np(means), geom.Tm, geom.nrm, Kc, Rwc, *out
+        )
         SCRATCH.give("backward", slot_buf)
         return tuple(torch.from_numpy(a) for a in out) + (None, None, None)
 
