@@ -41,22 +41,24 @@ def enclosed_holes(valid: np.ndarray, max_px: int, mask: np.ndarray | None = Non
     out = np.zeros_like(valid)
     if max_px <= 0 or not candidates.any():
         return out
-    labels, _ = ndimage.label(candidates, structure=_EIGHT)
-    H, W = valid.shape
-    for k, sl in enumerate(ndimage.find_objects(labels), start=1):
-        if sl is None:
-            continue
-        ys, xs = sl
-        if ys.start == 0 or xs.start == 0 or ys.stop == H or xs.stop == W:
-            continue  # touches the image border: its surroundings are not all seen
-        box = (slice(ys.start - 1, ys.stop + 1), slice(xs.start - 1, xs.stop + 1))
-        comp = labels[box] == k
-        if comp.sum() > max_px:
-            continue
-        ring = ndimage.binary_dilation(comp, _EIGHT) & ~comp
-        if (valid[box] & inside[box])[ring].all():
+    for box, comp, ring, at_border in _regions(candidates):
+        # At the image border its surroundings are not all seen.
+        if not at_border and comp.sum() <= max_px and (valid[box] & inside[box])[ring].all():
             out[box] |= comp
     return out
+
+
+def _regions(pixels: np.ndarray):
+    """Each 8-connected region of ``pixels``: ``(box, comp, ring, at_border)``, with ``box``
+    its bounding box grown by one pixel (cut at the image), ``comp`` and ``ring`` (its
+    8-neighbours outside it) as masks of the box, and whether it touches the image border."""
+    labels, _ = ndimage.label(pixels, structure=_EIGHT)
+    H, W = pixels.shape
+    for k, (ys, xs) in enumerate(ndimage.find_objects(labels), start=1):
+        at_border = ys.start == 0 or xs.start == 0 or ys.stop == H or xs.stop == W
+        box = (slice(max(ys.start - 1, 0), min(ys.stop + 1, H)), slice(max(xs.start - 1, 0), min(xs.stop + 1, W)))
+        comp = labels[box] == k
+        yield box, comp, ndimage.binary_dilation(comp, _EIGHT) & ~comp, at_border
 
 
 def harmonic_fill(depth_mm: np.ndarray, holes: np.ndarray) -> np.ndarray:
@@ -104,15 +106,7 @@ def flat_rimmed(holes: np.ndarray, points: np.ndarray, max_bend: float) -> np.nd
     if points.shape != holes.shape + (3,):
         raise ValueError(f"flat_rimmed: points {points.shape} do not match holes {holes.shape} x 3")
     out = np.zeros_like(holes)
-    labels, _ = ndimage.label(holes, structure=_EIGHT)
-    H, W = holes.shape
-    for k, sl in enumerate(ndimage.find_objects(labels), start=1):
-        if sl is None:
-            continue
-        ys, xs = sl
-        box = (slice(max(ys.start - 1, 0), min(ys.stop + 1, H)), slice(max(xs.start - 1, 0), min(xs.stop + 1, W)))
-        comp = labels[box] == k
-        ring = ndimage.binary_dilation(comp, _EIGHT) & ~comp
+    for box, comp, ring, _ in _regions(holes):
         P = points[box][ring].astype(np.float64)
         if len(P) < 3 or not np.isfinite(P).all():
             continue
