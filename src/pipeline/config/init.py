@@ -29,8 +29,16 @@ class MVSConfig:
     # A hypothesis scores max(mean NCC over the sources, best source's NCC - this): a point
     # beside an occluding edge is hidden from some sources (>= 2: the mean alone).
     best_source_margin: float = 0.1
+    # Holes of the consistent depth that good depth encloses, up to this fraction of the image's
+    # pixels, are filled by harmonic interpolation and their points join the cloud (not the depth
+    # maps, which stay two-view-confirmed); 0: off. pipeline.init.hole_fill.
+    hole_fill_area: float = 0.00625
+    hole_fill_max_bend: float = 0.02  # ... only where the points around it lie within this x its extent of a plane
 
     def __post_init__(self) -> None:
+        if not 0 <= self.hole_fill_area < 1 or not self.hole_fill_max_bend >= 0:
+            raise ConfigError(f"init.mvs.hole_fill_area must be in [0, 1) and hole_fill_max_bend >= 0, got "
+                              f"{self.hole_fill_area} and {self.hole_fill_max_bend}")
         if self.window < 3 or self.window % 2 == 0:
             raise ConfigError(f"init.mvs.window must be odd and >= 3, got {self.window}")
         if self.depth_step_px <= 0 or self.max_depths < 3:

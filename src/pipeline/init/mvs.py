@@ -28,7 +28,8 @@ from scipy import ndimage
 from pipeline import geometry
 from pipeline.config.init import InitConfig, MVSConfig
 from pipeline.data.scene import Scene
-from pipeline.init.fusion import check_consistency, fuse_views
+from pipeline.init.fusion import ViewPoints, check_consistency, fuse_views
+from pipeline.init.hole_fill import enclosed_holes, flat_rimmed, harmonic_fill, contradicted
 from pipeline.init.io import DepthMap, InitResult
 
 
@@ -430,17 +431,60 @@ def run(scene: Scene, cfg: InitConfig) -> InitResult:
                              np.where(vp.valid, conf, 0.0).astype(np.float32),
                              vp.valid, scene.K[i], scene.world_to_cam[i]))
         point_conf.append(conf[vp.pixels[:, 0], vp.pixels[:, 1]])
-    cloud = fuse_views(views, point_conf, scene.world_to_cam, cfg.voxel_norm * scene.norm_scale_mm, cfg.normal_knn)
     masks = _masks(scene)
+    filled_px = []
+    if cfg.mvs.hole_fill_area > 0:
+        all_depths = [m.depth_mm for m in maps]
+        filled = [filled_hole_points(scene, i, m, vp.valid, cfg.mvs.hole_fill_area, cfg.mvs.hole_fill_max_bend,
+                                     all_depths) for i, (m, vp) in enumerate(zip(maps, views))]
+        filled_px = [len(f.pixels) for f in filled]
+        views, point_conf = views + filled, point_conf + [np.zeros(len(f.pixels)) for f in filled]
+        cams = np.concatenate([scene.world_to_cam, scene.world_to_cam])
+    else:
+        cams = scene.world_to_cam
+    cloud = fuse_views(views, point_conf, cams, cfg.voxel_norm * scene.norm_scale_mm, cfg.normal_knn)
     matched = [round(float(s.valid.sum() / max(1, m.sum())), 4) for s, m in zip(sweeps, masks)]
     consistent = [round(float(v.valid.sum() / max(1, m.sum())), 4) for v, m in zip(views, masks)]
     info = {
         "num_depths": [s.num_depths for s in sweeps],
         "matched_fraction": matched,
         "consistent_fraction": consistent,
+        "hole_filled_pixels": filled_px,
         "warnings": match_warnings(scene.view_ids, matched, consistent, cfg.mvs),
     }
     return InitResult(cloud, maps, info)
+
+
+DISAGREE_REL = 0.005  # another view's depth this far (relative) from a filled point contradicts it
+
+
+def filled_hole_points(scene: Scene, i: int, depth: DepthMap, consistent: np.ndarray, max_area: float,
+                       max_bend: float, all_depths: list[np.ndarray]) -> ViewPoints:
+    """View ``i``'s enclosed holes of the consistent depth (at most ``max_area`` of the image's
+    pixels each, inside the view's mask when the scene has masks, with a rim within
+    ``max_bend`` of a plane, and no other view's depth in ``all_depths`` off any filled point), filled by harmonic interpolation, as points (world mm) with the view's colours;
+    ``count`` 0: no other view confirms them."""
+    H, W = consistent.shape
+    mask = scene.masks[i] if scene.masks is not None else None
+    c2w = geometry.rigid_inverse(scene.world_to_cam[i])
+    ys, xs = np.mgrid[0:H, 0:W]
+    cam_points = geometry.pixel_rays(scene.K[i], xs, ys) * depth.depth_mm[..., None].astype(np.float64)
+    holes = flat_rimmed(enclosed_holes(consistent, int(max_area * H * W), mask), cam_points, max_bend)
+    z = harmonic_fill(depth.depth_mm, holes)
+    rows, cols = np.nonzero(holes)
+    rays = geometry.pixel_rays(scene.K[i], cols, rows)
+    pts = (rays * z[rows, cols][:, None]) @ c2w[:3, :3].T + c2w[:3, 3]
+    others = [j for j in range(scene.num_views) if j != i]
+    bad = contradicted(pts, [all_depths[j] for j in others], scene.K[others], scene.world_to_cam[others],
+                           DISAGREE_REL)
+    if bad.any():  # a hole another view sees into or past is a gap or a recess, not a surface: left open
+        labels, _ = ndimage.label(holes, structure=np.ones((3, 3)))
+        open_labels = np.unique(labels[rows[bad], cols[bad]])
+        holes &= ~np.isin(labels, open_labels)
+        keep = holes[rows, cols]
+        rows, cols, pts = rows[keep], cols[keep], pts[keep]
+    return ViewPoints(holes, np.zeros((H, W), np.int64), pts, scene.images[i][rows, cols].astype(np.float32),
+                      np.stack([rows, cols], 1))
 
 
 def match_warnings(view_ids: list[int], matched: list[float], consistent: list[float], params: MVSConfig) -> list[str]:
