@@ -22,6 +22,10 @@ def _to(s: Surfels, device: str) -> Surfels:
                    s.features.to(device), s.sh_degree)  # fmt: skip
 
 
+@pytest.mark.xfail(strict=True, reason=(
+    "measured on an H200 with gsplat 1.5.3 (2026-11-28): gsplat's CUDA forward differs from its own pure-torch "
+    "rules (projection equal; colours 1.2% mean, 16% of pixels off by more than 1% of the maximum), while the cpu "
+    "backend matches those rules to 5e-4: docs/rasterizer.md, 'The cuda backend, run'"))
 def test_cuda_matches_cpu_where_the_models_agree():
     # Opacity <= 0.9 keeps gsplat's 0.999 cap and ours (0.99) out of play; colours,
     # alpha and normals depend on neither the depth source nor the cap.
@@ -48,3 +52,24 @@ def test_cuda_gradients_are_finite_and_reach_every_parameter():
     for t in leaves:
         assert torch.isfinite(t.grad).all() and t.grad.abs().max() > 0
     assert out.means2d.grad is not None and torch.isfinite(out.means2d.grad).all()
+
+
+def test_cpu_surfels_render_on_the_gpu_and_come_back_to_the_cpu():
+    # The trainer keeps its tensors and losses on the CPU; the backend copies there and back.
+    cam = random_camera(64, 48, 13)
+    s = random_surfels(300, cam, seed=13, dtype=torch.float32)
+    leaves = [t.detach().clone().requires_grad_(True) for t in (s.means, s.quats, s.scales, s.opacities, s.features)]
+    out = rasterize(Surfels(*leaves), cam, "cuda")
+    on_gpu = rasterize(_to(s, "cuda"), cam, "cuda")
+    drawn = on_gpu.radii.cpu() > 0  # gsplat leaves a culled surfel's means2d unwritten
+    for k in ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "distortion", "radii", "means2d"):
+        x, y = getattr(out, k).detach(), getattr(on_gpu, k).detach().cpu()
+        assert getattr(out, k).device.type == "cpu", k
+        if k == "means2d":
+            x, y = x[drawn], y[drawn]
+        assert torch.equal(x, y), k
+    (out.features.sum() + out.depth_median.sum() + out.distortion.sum()).backward()
+    for t in leaves:
+        assert t.grad.device.type == "cpu" and torch.isfinite(t.grad).all() and t.grad.abs().max() > 0
+    assert out.means2d.grad is not None and out.means2d.grad.device.type == "cpu"
+    assert out.means2d.grad.abs().max() > 0

@@ -127,7 +127,7 @@ class OptimizeConfig:
     normalised frame (unit sphere of scale_mat); sizes below are in its units."""
 
     preset: str = "custom"  # the name of the conf/optimize preset, for reports
-    backend: str = "auto"  # auto (cuda when available, else cpu) | cpu | cuda | reference
+    backend: str = "auto"  # auto (= cpu, also on a GPU: resolve_backend) | cpu | cuda | reference
     iterations: int = 10000
     seed: int = 0
     sh_degree: int = 3

@@ -23,10 +23,13 @@ __all__ = ["BACKENDS", "Camera", "RenderOutput", "Surfels", "rasterize", "resolv
 
 
 def resolve_backend(name: str) -> str:
-    """A backend name of params ``optimize.backend`` (``auto``: cuda where a device is, else
-    cpu) as one of :data:`BACKENDS`."""
+    """A backend name of params ``optimize.backend`` as one of :data:`BACKENDS`.
+
+    ``auto`` is ``cpu`` even where a GPU is: ``cuda`` (gsplat) composites surfel-centre
+    depth, a different method that measured worse (docs/rasterizer.md, "The cuda backend,
+    run"), so it runs only when named."""
     if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+        return "cpu"
     if name == "cuda" and not torch.cuda.is_available():
         raise ConfigError("optimize.backend is cuda but no CUDA device is available (use auto or cpu)")
     return name

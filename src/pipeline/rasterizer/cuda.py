@@ -25,14 +25,21 @@ from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
 
 
 def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float) -> RenderOutput:
+    """Render on the GPU. Surfels on the CPU are copied there (differentiably) and every
+    map comes back to the CPU, so a trainer whose losses run on the CPU uses this backend
+    unchanged; surfels on a CUDA device stay there."""
     if not torch.cuda.is_available():
         raise ValueError("the cuda backend needs a CUDA device; none is available")
     try:
         from gsplat import rasterization_2dgs
     except ImportError as exc:
         raise ValueError("the cuda backend needs gsplat (pip install gsplat with a CUDA torch)") from exc
-    if surfels.means.device.type != "cuda" or surfels.means.dtype != torch.float32:
-        raise ValueError(f"the cuda backend needs float32 CUDA tensors, got {surfels.means.dtype} on {surfels.means.device}")
+    if surfels.means.dtype != torch.float32:
+        raise ValueError(f"the cuda backend needs float32 tensors, got {surfels.means.dtype}")
+    home = surfels.means.device
+    if home.type != "cuda":
+        surfels = Surfels(*(t.to("cuda") for t in (surfels.means, surfels.quats, surfels.scales, surfels.opacities,
+                                                   surfels.features)), surfels.sh_degree)
     dev = surfels.means.device
     w2c = camera.world_to_cam.to(dev, torch.float32)
     K = camera.K.clone()
@@ -52,32 +59,35 @@ def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float) -> RenderOu
     scales3 = torch.cat([surfels.scales, torch.ones_like(surfels.scales[:, :1])], dim=1)  # 3rd is unused in 2DGS
 
     render, alphas, normals_world, _, _, median, meta = rasterization_2dgs(
-        surfels.means, surfels.quats, scales3, surfels.opacities, feats, w2c[None], K[None],
+        surfels.means, surfels.quats, scales3, surfels.opacities, feats[None], w2c[None], K[None],
         camera.width, camera.height, near_plane=near, far_plane=far, render_mode="RGB+D", packed=False,
     )  # fmt: skip
     render, alpha = render[0], alphas[0, ..., 0]
     M1, M2, depth_sum = render[..., C], render[..., C + 1], render[..., C + 2]
     normal_world = normals_world[0]
 
-    means2d = (meta["means2d"][0].detach() - 0.5).requires_grad_(torch.is_grad_enabled())
+    # means2d is a leaf on the caller's device; gsplat's densification gradient reaches it
+    # through a hook.
+    means2d = (meta["means2d"][0].detach() - 0.5).to(home).requires_grad_(torch.is_grad_enabled())
     densify = meta["gradient_2dgs"]
     if densify.requires_grad:
 
         def _copy_grad(g: torch.Tensor) -> None:
-            means2d.grad = g[0].clone() if means2d.grad is None else means2d.grad + g[0]
+            g = g[0].to(home)
+            means2d.grad = g.clone() if means2d.grad is None else means2d.grad + g
 
         densify.register_hook(_copy_grad)
     radii = meta["radii"][0]
     if radii.ndim == 2:  # newer gsplat: per-axis radii
         radii = radii.amax(-1)
     return RenderOutput(
-        features=render[..., :C],
-        alpha=alpha,
-        depth_expected=depth_sum / (alpha + depth_eps),
-        depth_median=median[0, ..., 0],
-        normal_cam=normal_world @ w2c[:3, :3].T,  # n_cam = R_wc n_world, as rows
-        normal_world=normal_world,
-        distortion=(alpha * M2 - M1 * M1).clamp_min(0.0),
-        radii=radii.to(torch.int32),
+        features=render[..., :C].to(home),
+        alpha=alpha.to(home),
+        depth_expected=(depth_sum / (alpha + depth_eps)).to(home),
+        depth_median=median[0, ..., 0].to(home),
+        normal_cam=(normal_world @ w2c[:3, :3].T).to(home),  # n_cam = R_wc n_world, as rows
+        normal_world=normal_world.to(home),
+        distortion=(alpha * M2 - M1 * M1).clamp_min(0.0).to(home),
+        radii=radii.to(home, torch.int32),
         means2d=means2d,
     )

@@ -168,7 +168,7 @@ def colors_of(surfels: Surfels, camera: Camera) -> Tensor:
     """``(P, C)`` colours: the features, or the SH evaluated towards the camera centre."""
     if surfels.sh_degree is None:
         return surfels.features
-    dirs = F.normalize(surfels.means - camera.cam_center.to(surfels.means.dtype), dim=-1)
+    dirs = F.normalize(surfels.means - camera.cam_center.to(surfels.means), dim=-1)  # device and dtype
     return eval_sh(surfels.sh_degree, surfels.features, dirs)
 
 
