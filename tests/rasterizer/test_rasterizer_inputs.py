@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from pipeline.errors import ConfigError
 from pipeline.rasterizer import Camera, Surfels, rasterize
 from pipeline.rasterizer.project import eval_sh
 
@@ -116,3 +117,15 @@ def test_sh_degree_zero_is_the_dc_colour():
 def test_cuda_backend_without_cuda_raises():
     with pytest.raises(ValueError, match="CUDA device"):
         rasterize(Surfels(**good(dtype=torch.float32)), Camera(**CAM), backend="cuda")
+
+
+def test_auto_backend_is_cpu_and_unknown_names_are_refused():
+    # auto never picks cuda, also where a GPU is: gsplat's centre depth is another method
+    # (docs/rasterizer.md, "The cuda backend, run").
+    from pipeline.rasterizer import resolve_backend
+
+    assert resolve_backend("auto") == "cpu"
+    assert resolve_backend("reference") == "reference"
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="no CUDA device"):
+            resolve_backend("cuda")
