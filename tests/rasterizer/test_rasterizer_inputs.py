@@ -119,7 +119,7 @@ def test_cuda_backend_without_cuda_raises():
         rasterize(Surfels(**good(dtype=torch.float32)), Camera(**CAM), backend="cuda")
 
 
-def test_auto_backend_is_cpu_and_unknown_names_are_refused():
+def test_auto_backend_is_cpu_and_cuda_without_a_device_is_refused():
     # auto never picks cuda, also where a GPU is: gsplat's centre depth is another method
     # (docs/rasterizer.md, "The cuda backend, run").
     from pipeline.rasterizer import resolve_backend
