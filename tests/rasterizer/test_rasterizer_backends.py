@@ -151,6 +151,33 @@ def test_radii_mark_visible_surfels():
     assert (out.radii[2:] > 0).float().mean() > 0.8
 
 
+def test_tile_lists_are_front_to_back_with_ties_in_id_order():
+    """Each tile's list equals the stable (depth, id) sort of the drawn surfels whose box
+    touches it, also with many equal depths (the global quicksort breaks ties by id), and
+    each entry's gradient slot is its surfel's own (row-major tile order) slot."""
+    import numpy as np
+
+    from pipeline.rasterizer import _kernels as K
+    from pipeline.rasterizer import cpu
+
+    rng = np.random.default_rng(0)
+    P, n_tx, n_ty = 400, 5, 4
+    x0, y0 = rng.integers(0, 80, P), rng.integers(0, 64, P)
+    box = np.stack([x0, np.minimum(x0 + rng.integers(0, 30, P), 79), y0, np.minimum(y0 + rng.integers(0, 30, P), 63)], 1)
+    radii = (rng.random(P) > 0.2).astype(np.int32)
+    depth = rng.integers(0, 12, P).astype(np.float64)  # ~30 surfels per depth value
+    tile_start, tile_list, emit_start, slot_of_entry, _ = K.bin_tiles(cpu.depth_order(depth, radii), box, n_tx, n_ty)
+    for t in range(n_tx * n_ty):
+        tx, ty = t % n_tx, t // n_tx
+        hit = [s for s in range(P) if radii[s] and box[s, 0] // 16 <= tx <= box[s, 1] // 16 and box[s, 2] // 16 <= ty <= box[s, 3] // 16]
+        expected = sorted(hit, key=lambda s: (depth[s], s))
+        got = tile_list[tile_start[t] : tile_start[t + 1]]
+        assert list(got) == expected
+        for j, s in zip(range(tile_start[t], tile_start[t + 1]), got):
+            cols = box[s, 1] // 16 - box[s, 0] // 16 + 1
+            assert slot_of_entry[j] == emit_start[s] + (ty - box[s, 2] // 16) * cols + tx - box[s, 0] // 16
+
+
 @pytest.mark.parametrize("n_workers", [1, 2, 3, 8])
 def test_tile_schedule_partitions_and_balances(n_workers):
     """Every tile goes to exactly one worker; loads within the LPT bound (mean + one tile),

@@ -38,7 +38,7 @@ from pipeline.measure import provenance
 KERNELS = {
     "raster forward kernel": ("forward",),
     "raster backward kernels": ("backward", "reduce_and_chain"),
-    "raster set-up and binning": ("preprocess", "bin_tiles", "schedule_tiles"),
+    "raster set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles"),
 }
 AUTOGRAD = "torch autograd (loss terms' backward)"
 LOSS_FORWARD = "loss terms' forward"

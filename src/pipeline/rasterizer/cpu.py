@@ -133,6 +133,16 @@ def _camera_arrays(camera: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return camera.K.numpy(), np.ascontiguousarray(w2c[:3, :3]), np.ascontiguousarray(w2c[:3, 3])
 
 
+def depth_order(depth: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """The drawn surfels' ids sorted by ``(centre depth, id)``. numpy's quicksort
+    (vectorised; 2.5 ms for 200k against 9 ms of per-tile merge sorts on 2 threads),
+    then ties broken by id, so the order is the one a stable sort gives."""
+    visible = np.flatnonzero(radii > 0)
+    order = visible[np.argsort(depth[visible], kind="quicksort")]
+    K.break_depth_ties(order, depth)
+    return order
+
+
 def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> Geometry:
     """Per-surfel set-up and tile binning (no gradient)."""
     P = means.shape[0]
@@ -150,7 +160,7 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     )  # fmt: skip
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
-    binned = K.bin_tiles(np.flatnonzero(radii > 0), depth, box, n_tx, n_ty)
+    binned = K.bin_tiles(depth_order(depth, radii), box, n_tx, n_ty)
     tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = binned
     # Cost of a tile ~ its pixel-surfel pairs plus a per-surfel set-up.
     cost = np.diff(rec_tile_start).astype(np.float64) + _ENTRY_COST * np.diff(tile_start)
