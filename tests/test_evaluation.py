@@ -94,6 +94,27 @@ def test_offset_along_normals_gives_delta(ground_truth, delta):
     assert m["completeness_mm"] == pytest.approx(abs(delta), rel=0.1)
 
 
+def test_by_distance_bands_add_up_to_the_mean():
+    d = np.array([0.1, 0.2, 0.7, 1.5, 3.0, 7.0, 25.0, np.inf])  # the last two are beyond max_dist
+    bands = dtu_eval.by_distance(d, 20.0)
+    assert list(bands) == ["0-0.5", "0.5-1", "1-2", "2-5", "5-20"]
+    used = d[d < 20.0]
+    assert [b["fraction"] for b in bands.values()] == pytest.approx([2 / 6, 1 / 6, 1 / 6, 1 / 6, 1 / 6])
+    assert bands["5-20"]["share_mm"] == pytest.approx(7.0 / 6)
+    assert sum(b["share_mm"] for b in bands.values()) == pytest.approx(used.mean())
+    assert list(dtu_eval.by_distance(d, 1.5)) == ["0-0.5", "0.5-1", "1-1.5"]  # bands end at max_dist
+
+
+@pytest.mark.parametrize("delta", [0.7, 3.0])
+def test_offset_mesh_falls_in_its_distance_band(ground_truth, delta):
+    V, F, N = sphere()
+    m = dtu_eval.evaluate_mesh(V + delta * N, F, ground_truth, NO_CULL, log=None)
+    band = "0.5-1" if delta < 1 else "2-5"
+    for side in ("accuracy", "completeness"):
+        assert m[f"{side}_by_distance"][band]["fraction"] > 0.9
+        assert sum(b["share_mm"] for b in m[f"{side}_by_distance"].values()) == pytest.approx(m[f"{side}_mm"])
+
+
 def test_far_distances_are_left_out_not_clamped(tmp_path):
     V, F, _ = sphere(resolution=30)
     # Observe the whole box around the ball, so that the floater below counts for accuracy.

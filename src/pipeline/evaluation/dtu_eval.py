@@ -152,6 +152,28 @@ def _mean_below(d: np.ndarray, max_dist: float) -> tuple[float, int, float]:
     return mean, n, frac_out
 
 
+# Edges (mm) of the bands ``by_distance`` splits a mean into; the last band ends at max_dist.
+DISTANCE_BANDS_MM = (0.0, 0.5, 1.0, 2.0, 5.0)
+
+
+def by_distance(d: np.ndarray, max_dist: float, edges: tuple[float, ...] = DISTANCE_BANDS_MM) -> dict:
+    """Split the mean of ``d < max_dist`` by distance band: for each band ``[lo, hi)``, the
+    fraction of the used distances in it and its share of the mean (``sum over the band /
+    number used``; the shares add up to the mean). Tells a tail of far-off points (which a
+    filter could remove) from a small offset everywhere (which only better geometry fixes)."""
+    used = d[d < max_dist]
+    uppers = [*edges[1:], max_dist]
+    out = {}
+    for lo, hi in zip(edges, uppers):
+        if lo >= max_dist:
+            break
+        band = used[(used >= lo) & (used < hi)]
+        key = f"{lo:g}-{min(hi, max_dist):g}"
+        out[key] = {"fraction": len(band) / len(used) if len(used) else math.nan,
+                    "share_mm": float(band.sum() / len(used)) if len(used) else math.nan}
+    return out
+
+
 def evaluate_mesh(
     vertices_mm: np.ndarray,
     triangles: np.ndarray,
@@ -174,6 +196,7 @@ def evaluate_mesh(
 
     Returns a JSON-ready dict: ``accuracy_mm``, ``completeness_mm``, ``overall_mm`` (NaN when
     undefined), ``valid``, ``problems``, ``counts``, ``fraction_beyond_max_dist``,
+    ``accuracy_by_distance`` and ``completeness_by_distance`` (:func:`by_distance`),
     ``timings_s`` and ``config``.
     """
     say = log or (lambda _msg: None)
@@ -264,6 +287,8 @@ def evaluate_mesh(
         "scan_id": gt.scan_id,
         "counts": counts,
         "fraction_beyond_max_dist": {"accuracy": out_acc, "completeness": out_comp},
+        "accuracy_by_distance": by_distance(d_acc, max_dist),
+        "completeness_by_distance": by_distance(d_comp, max_dist),
         **({"accuracy_by_views_seen": by_seen} if by_seen is not None else {}),
         **({"completeness_by_views_seen": comp_by_seen} if comp_by_seen is not None else {}),
         "timings_s": timings,
