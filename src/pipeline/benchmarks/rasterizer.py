@@ -277,7 +277,8 @@ def run(args: argparse.Namespace) -> int:
     cases = QUICK if args.quick else [(W, H, N) for (W, H) in SIZES for N in COUNTS]
     compile_s = cpu_backend.warm_up()
     # numba counts, per kernel, the signatures it had to compile rather than load.
-    kernels = (K.preprocess, K.break_depth_ties, K.bin_tiles, K.schedule_tiles, K.gather_entries, K.forward, K.backward, K.reduce_and_chain)
+    kernels = (K.preprocess, K.break_depth_ties, K.bin_tiles, K.schedule_tiles, K.gather_entries, K.forward,
+               K.backward, K.reduce_and_chain)
     misses = sum(sum(d.stats.cache_misses.values()) for d in kernels)
     meta = {
         "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
