@@ -13,8 +13,8 @@ intersection ``q = k x l`` of pixel ``(x, y)`` is affine in the pixel:
 ``rho3`` and ``rho2`` tests is rejected without a division or an ``exp``.
 
 Layout: the image is cut into ``TILE x TILE`` tiles. Each visible surfel is listed in
-every tile its support box touches; each tile's list is then sorted front to back by
-``(centre depth, id)``. The tiles are dealt to the threads beforehand
+every tile its support box touches, the surfels taken front to back by ``(centre depth,
+id)`` (one global sort), so each tile's list comes out in that order. The tiles are dealt to the threads beforehand
 (``schedule_tiles``); one thread renders a tile surfel by surfel, touching only the
 pixels of the surfel's box inside the tile, with the per-pixel state in small local
 arrays.
@@ -213,13 +213,18 @@ def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far
 @njit(cache=True)
 def break_depth_ties(order, depth):
     """Make ``order`` (surfel ids sorted by ``depth``, any order among equal depths)
-    sorted by ``(depth, id)``: each run of equal depths is insertion-sorted by id."""
+    sorted by ``(depth, id)``: each run of equal depths sorted by id (insertion sort for
+    the usual short runs; a long one, e.g. a fronto-parallel plane, by ``np.sort``)."""
     n = order.shape[0]
     k = 0
     while k < n:
         e = k + 1
         while e < n and depth[order[e]] == depth[order[k]]:
             e += 1
+        if e - k > 32:
+            order[k:e] = np.sort(order[k:e])
+            k = e
+            continue
         for i in range(k + 1, e):
             s = order[i]
             m = i - 1
