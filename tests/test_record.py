@@ -20,7 +20,9 @@ def _evaluate_mesh_result(**over):
                                     "0": {"fraction": 0.0, "accuracy_mm": math.nan}},
          "completeness_by_views_seen": {"2+": {"fraction": 0.6, "completeness_mm": 0.3},
                                         "1": {"fraction": 0.0, "completeness_mm": math.nan},
-                                        "0": {"fraction": 0.4, "completeness_mm": 3.3}}}
+                                        "0": {"fraction": 0.4, "completeness_mm": 3.3}},
+         "accuracy_by_distance": {"0-0.5": {"fraction": 0.8, "share_mm": 0.2}, "0.5-1": {"fraction": 0.2, "share_mm": 0.3}},
+         "completeness_by_distance": {"0-0.5": {"fraction": 0.0, "share_mm": 0.0}, "0.5-20": {"fraction": 1.0, "share_mm": 1.5}}}
     return m | over
 
 
@@ -35,6 +37,9 @@ def test_round_trip_keeps_every_figure(tmp_path):
     assert json.loads((tmp_path / "m.json").read_text())["chamfer"]["accuracy_by_views_seen"]["0"]["accuracy_mm"] is None
     assert back.chamfer.completeness_by_views_seen["0"] == {"fraction": 0.4, "completeness_mm": 3.3}
     assert math.isnan(back.chamfer.completeness_by_views_seen["1"]["completeness_mm"])
+    assert back.chamfer.accuracy_by_distance == {"0-0.5": {"fraction": 0.8, "share_mm": 0.2},
+                                                 "0.5-1": {"fraction": 0.2, "share_mm": 0.3}}
+    assert back.chamfer.completeness_by_distance["0.5-20"] == {"fraction": 1.0, "share_mm": 1.5}
     h = SceneMetrics(**COMMON, heldout=HeldOut(4, (200, 150), 0.9, 0.7, None))
     h.write(tmp_path / "h.json")
     assert SceneMetrics.read(tmp_path / "h.json").heldout == h.heldout
@@ -81,3 +86,13 @@ def test_covered_fraction_needs_the_counts():
     c = Chamfer.of(_evaluate_mesh_result(counts={}))
     with pytest.raises(MetricsError, match=r"f: `completeness_used` must be a finite number"):
         c.covered_fraction("f")
+
+
+def test_a_record_without_the_splits_reads_back_without_them(tmp_path):
+    """Reports scored before a split existed (or of a real scan, with no views-seen split)
+    have none of them: they read back as None and are written without the keys."""
+    plain = {k: v for k, v in _evaluate_mesh_result().items() if "_by_" not in k}
+    SceneMetrics(**COMMON, chamfer=Chamfer.of(plain)).write(tmp_path / "m.json")
+    back = SceneMetrics.read(tmp_path / "m.json")
+    assert back.chamfer.accuracy_by_distance is None and back.chamfer.completeness_by_views_seen is None
+    assert not any("_by_" in k for k in json.loads((tmp_path / "m.json").read_text())["chamfer"])

@@ -85,7 +85,11 @@ def test_table2_rows_components_and_mean(tmp_path):
             "2+": {"fraction": 0.9, "accuracy_mm": 0.2 * full}, "1": {"fraction": 0.1, "accuracy_mm": None}},
             "completeness_by_views_seen": {"2+": {"fraction": 0.5, "completeness_mm": 0.5 * full},
                                            "1": {"fraction": 0.1, "completeness_mm": full},
-                                           "0": {"fraction": 0.4, "completeness_mm": 4 * full}}}})
+                                           "0": {"fraction": 0.4, "completeness_mm": 4 * full}},
+            "accuracy_by_distance": {"0-0.5": {"fraction": 0.9, "share_mm": 0.1 * full},
+                                     "0.5-1": {"fraction": 0.05, "share_mm": 0.05 * full},
+                                     "1-2": {"fraction": 0.04, "share_mm": 0.06 * full},
+                                     "2-20": {"fraction": 0.01, "share_mm": 0.04 * full}}}})
     ablation = AblationConfig(**BASE["ablation"])
     rows = build_table2(BASE, scenes, ablation.run, ablation.variants, tmp_path / "metrics", tmp_path / "variants",
                         tmp_path / "baseline", tmp_path / "limit")
@@ -117,6 +121,8 @@ def test_table2_rows_components_and_mean(tmp_path):
     by_gt = md.split("**Completeness by how many input views see the GT surface**")[1].split("**How much")[0]
     assert "| full method | 0.50 / 1.00 / 4.00 | 1.00 / 2.00 / 8.00 | 0.75 / 1.50 / 6.00 |" in by_gt
     assert "| plain |" not in by_gt
+    far = md.split("**Accuracy beyond 1 mm**")[1].split("**Completeness by")[0]
+    assert "| full method | 0.100 (5.0%) | 0.200 (5.0%) | 0.150 |" in far and "| plain |" not in far
     assert "published" not in md  # no published figure unless given, and then apart:
     published = read_published_ablation(REPO / "data" / "published" / "gcgs_table2_ablation.csv")
     assert published[-1] == {"dense_init": True, "gcf": True, "nor": True, "mean_mm": 0.95}

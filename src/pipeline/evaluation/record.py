@@ -50,11 +50,17 @@ def _json_number(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else value  # JSON has no NaN: null
 
 
-def _by_seen(groups: dict | None) -> dict | None:
-    """Accuracy or completeness by views seen with JSON's nulls (an empty group) back to NaN."""
+def _groups(groups: dict | None) -> dict | None:
+    """A split of accuracy or completeness (by views seen, by distance band) with JSON's
+    nulls (an empty group) back to NaN."""
     if groups is None:
         return None
     return {g: {k: _nan(v) for k, v in r.items()} for g, r in groups.items()}
+
+
+# The splits of accuracy and completeness a Chamfer record keeps (each optional: a real scan has
+# no views-seen split, reports scored before a split existed lack it).
+SPLITS = ("accuracy_by_views_seen", "completeness_by_views_seen", "accuracy_by_distance", "completeness_by_distance")
 
 
 @dataclass(frozen=True)
@@ -69,13 +75,15 @@ class Chamfer:
     counts: dict = field(default_factory=dict)
     accuracy_by_views_seen: dict | None = None  # pipeline.evaluation.seen; synthetic scenes
     completeness_by_views_seen: dict | None = None  # likewise
+    accuracy_by_distance: dict | None = None  # dtu_eval.by_distance: band -> fraction, share of the mean
+    completeness_by_distance: dict | None = None  # likewise
 
     @classmethod
     def of(cls, metrics: dict) -> Chamfer:
         """From :func:`pipeline.evaluation.dtu_eval.evaluate_mesh`'s result."""
         return cls(metrics["accuracy_mm"], metrics["completeness_mm"], metrics["overall_mm"], bool(metrics["valid"]),
-                   tuple(metrics["problems"]), dict(metrics["counts"]), _by_seen(metrics.get("accuracy_by_views_seen")),
-                   _by_seen(metrics.get("completeness_by_views_seen")))
+                   tuple(metrics["problems"]), dict(metrics["counts"]),
+                   **{key: _groups(metrics.get(key)) for key in SPLITS})
 
     @classmethod
     def parse(cls, data: object, where: str) -> Chamfer:
@@ -85,8 +93,7 @@ class Chamfer:
         nums = {k: _number(data, k, where, finite=False, optional=not valid)
                 for k in ("accuracy_mm", "completeness_mm", "overall_mm")}
         return cls(**{k: _nan(v) for k, v in nums.items()}, valid=bool(valid), problems=tuple(data.get("problems", ())),
-                   counts=dict(data.get("counts", {})), accuracy_by_views_seen=_by_seen(data.get("accuracy_by_views_seen")),
-                   completeness_by_views_seen=_by_seen(data.get("completeness_by_views_seen")))
+                   counts=dict(data.get("counts", {})), **{key: _groups(data.get(key)) for key in SPLITS})
 
     def figures(self, where: str) -> dict[str, float]:
         """``overall``, ``accuracy``, ``completeness`` (mm), all finite, else an error naming ``where``."""
@@ -109,7 +116,7 @@ class Chamfer:
         out = {"accuracy_mm": _json_number(self.accuracy_mm), "completeness_mm": _json_number(self.completeness_mm),
                "overall_mm": _json_number(self.overall_mm), "valid": self.valid, "problems": list(self.problems),
                "counts": self.counts}
-        for key in ("accuracy_by_views_seen", "completeness_by_views_seen"):
+        for key in SPLITS:
             groups = getattr(self, key)
             if groups is not None:
                 out[key] = {g: {k: _json_number(v) for k, v in r.items()} for g, r in groups.items()}

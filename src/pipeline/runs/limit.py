@@ -25,7 +25,8 @@ def limit_chamfer(mesh: tuple[np.ndarray, np.ndarray], scene_dir: str | Path, gr
     m = dtu_eval.evaluate_mesh(mesh[0], mesh[1], ground, cfg, views=cull, log=log, name=name,
                                seen_views=seen.load_input_views(scene_dir, views))
     return {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems", "counts",
-                              "accuracy_by_views_seen", "completeness_by_views_seen")}
+                              "accuracy_by_views_seen", "completeness_by_views_seen", "accuracy_by_distance",
+                              "completeness_by_distance")}
 
 
 def run_limit(synth_dir: str | Path, scene_dir: str | Path, out_dir: str | Path, cfg: EvaluateConfig,
