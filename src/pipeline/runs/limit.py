@@ -13,6 +13,7 @@ from pipeline.config.mesh import MeshConfig
 from pipeline.data import dtu
 from pipeline.data.scene import SceneError
 from pipeline.evaluation import dtu_eval, gt, seen
+from pipeline.evaluation.record import SPLITS
 from pipeline.synth.limit import exact_depth_mesh, limit_mesh, mesh_area_mm2
 
 
@@ -24,9 +25,7 @@ def limit_chamfer(mesh: tuple[np.ndarray, np.ndarray], scene_dir: str | Path, gr
     cull = dtu_eval.load_cull_views(scene_dir, cfg.cull_views, views)
     m = dtu_eval.evaluate_mesh(mesh[0], mesh[1], ground, cfg, views=cull, log=log, name=name,
                                seen_views=seen.load_input_views(scene_dir, views))
-    return {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems", "counts",
-                              "accuracy_by_views_seen", "completeness_by_views_seen", "accuracy_by_distance",
-                              "completeness_by_distance")}
+    return {k: m[k] for k in ("accuracy_mm", "completeness_mm", "overall_mm", "valid", "problems", "counts", *SPLITS)}
 
 
 def run_limit(synth_dir: str | Path, scene_dir: str | Path, out_dir: str | Path, cfg: EvaluateConfig,
