@@ -26,7 +26,9 @@ from pipeline.reports.speed_accuracy import collect_cells, write_report
 
 REPORTS = Path("reports/speed_accuracy")
 # Cells whose settings are a preset of conf/optimize (tests/test_variants.py keeps them equal).
-PRESET_CELLS = {"full": "fast (default)", "sa_it150": "quick", "sa_it1000": "balanced", "sa_it2000": "long", "sa_paper": "paper"}
+PRESET_CELLS = {
+    "full": "fast (default)", "sa_it150": "quick", "sa_it1000": "balanced", "sa_it2000": "long", "sa_paper": "paper"
+}
 
 
 def main() -> int:

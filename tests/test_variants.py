@@ -204,7 +204,9 @@ def test_table2_names_a_missing_or_bad_report(tmp_path):
         build_table2(*args)
 
 
-@pytest.mark.parametrize("preset, cell", [("quick", "sa_it150"), ("balanced", "sa_it1000"), ("long", "sa_it2000"), ("paper", "sa_paper")])
+@pytest.mark.parametrize(
+    "preset, cell", [("quick", "sa_it150"), ("balanced", "sa_it1000"), ("long", "sa_it2000"), ("paper", "sa_paper")]
+)
 def test_presets_are_the_sweep_cells_they_cite(preset, cell):
     """conf/optimize/{quick,balanced,long,paper}.yaml must stay the settings measured as their sweep cell."""
     import dataclasses
