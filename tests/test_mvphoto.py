@@ -17,6 +17,7 @@ from pipeline.mvphoto import (
     multiview_consistency,
     plane_homographies,
     reference_pixels,
+    textured_pixels,
 )
 
 
@@ -652,3 +653,91 @@ def test_reference_pixels_cut_a_sphere_rim_at_the_angle():
         kept = reference_pixels(surface, normal, K, deg)
         radius = torch.sqrt(r2[kept]).max().item()
         assert abs(radius - R * math.sin(math.radians(deg))) < 2 * dist / f  # within two pixels
+
+
+# ----------------------------------------------------------------------------- textured pixels
+def _slow_textured(grey: np.ndarray, h: int, w: int, patch: int, min_std: float, gamma: float):
+    """Loop reference of :func:`textured_pixels`: each training pixel's full-resolution patch
+    (integer offsets around ``s (x + 0.5) - 0.5``), bilinear samples, inside the image, and its
+    (support-weighted) grey std. Returns the mask and the std."""
+    H, W = grey.shape
+    sx, sy = W / w, H / h
+    r = patch // 2
+    keep = np.zeros((h, w), bool)
+    std = np.zeros((h, w))
+    for y in range(h):
+        for x in range(w):
+            cx, cy = sx * (x + 0.5) - 0.5, sy * (y + 0.5) - 0.5
+            vals, inside = [], True
+            for dy in range(-r, r + 1):
+                for dx in range(-r, r + 1):
+                    px, py = cx + dx, cy + dy
+                    if not (0 <= px <= W - 1 and 0 <= py <= H - 1):
+                        inside = False
+                        px, py = min(max(px, 0), W - 1), min(max(py, 0), H - 1)
+                    x0, y0 = min(int(math.floor(px)), W - 2), min(int(math.floor(py)), H - 2)
+                    fx, fy = px - x0, py - y0
+                    vals.append((1 - fx) * (1 - fy) * grey[y0, x0] + fx * (1 - fy) * grey[y0, x0 + 1]
+                                + (1 - fx) * fy * grey[y0 + 1, x0] + fx * fy * grey[y0 + 1, x0 + 1])
+            a = np.array(vals)
+            wgt = np.exp(-np.abs(a - a[len(a) // 2]) / gamma) if gamma > 0 else np.ones_like(a)
+            wgt = wgt / wgt.sum()
+            mean = (wgt * a).sum()
+            std[y, x] = math.sqrt((wgt * (a - mean) ** 2).sum())
+            keep[y, x] = inside and std[y, x] >= min_std
+    return keep, std
+
+
+def _half_flat_image(H: int, W: int) -> torch.Tensor:
+    g = torch.Generator().manual_seed(5)
+    grey = torch.rand(H, W, generator=g, dtype=torch.float64)
+    grey[:, : W // 2] = 0.5  # flat left half
+    grey[H // 4: H // 2, 4:12] += 0.01 * torch.rand(H // 2 - H // 4, 8, generator=g, dtype=torch.float64)  # texture too faint to count
+    return grey
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.05])
+@pytest.mark.parametrize("scale", [1, 2])
+def test_textured_pixels_match_slow_reference(gamma, scale):
+    H, W = 36, 48
+    h, w = H // scale, W // scale
+    grey = _half_flat_image(H, W)
+    got = textured_pixels(grey, h, w, 5, 0.01, gamma, dtype=torch.float64)
+    want, std = _slow_textured(grey.numpy(), h, w, 5, 0.01, gamma)
+    assert got.dtype == torch.bool and got.shape == (h, w)
+    clear = np.abs(std - 0.01) > 1e-9  # no pixel on the threshold decides the comparison
+    assert (got.numpy() == want)[clear].all()
+    # Both kinds present: the flat half and the border are out, the textured half in.
+    assert 0 < got.sum() < h * w and not got[:, : w // 2 - 3].any()
+    # The chunking does not change the answer.
+    assert torch.equal(textured_pixels(grey, h, w, 5, 0.01, gamma, dtype=torch.float64, chunk=7), got)
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.05])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_textured_pixels_are_where_the_loss_can_have_a_pair(gamma, dtype):
+    """No pixel outside the mask has a valid pair in multiview_consistency; pixels inside it
+    do: sampling L_mv's points among the textured pixels drops only pairs that count for
+    nothing."""
+    p = random_problem(0, h=12, w=16)
+    p["grey_ref"][:, : p["grey_ref"].shape[1] // 2] = 0.5  # a flat half: no NCC there
+    h, w = p["depth"].shape
+    args = to_torch(p, None, ncc_gamma=gamma, min_patch_std=0.01, patch=5)
+    args = {k: (v.to(dtype) if torch.is_tensor(v) else v) for k, v in args.items()}
+    args["sources"] = [SourceView(*(None if x is None else x.to(dtype) for x in
+                                    (s.K_full, s.ref_to_src, s.grey_full, s.depth_train, s.K_train)))
+                       for s in args["sources"]]
+    tex = textured_pixels(args["grey_ref_full"], h, w, 5, 0.01, gamma, dtype=dtype)
+    assert 0 < tex.sum() < h * w
+    ys, xs = torch.nonzero(torch.ones(h, w, dtype=torch.bool), as_tuple=True)
+    for keep, has_pairs in ((tex, True), (~tex, False)):
+        pix = torch.stack([xs[keep.reshape(-1)], ys[keep.reshape(-1)]], 1)
+        out = multiview_consistency(**dict(args, pixels=pix))
+        assert (out["valid_fraction"] > 0) == has_pairs
+
+
+def test_textured_pixels_bad_input():
+    with pytest.raises(ValueError, match="grey_ref_full"):
+        textured_pixels(torch.rand(3, 4, 5), 2, 2, 3, 0.01, 0.0)
+    with pytest.raises(ValueError, match="patch"):
+        textured_pixels(torch.rand(8, 8), 4, 4, 4, 0.01, 0.0)

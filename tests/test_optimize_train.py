@@ -306,6 +306,42 @@ def test_flat_pixels_are_computed_once_per_view_and_size_on_the_whole_view(probl
     assert len(calls) == 3
 
 
+@pytest.mark.parametrize("textured", [False, True])
+def test_mv_points_are_drawn_among_textured_pixels_when_asked(problem, monkeypatch, textured):
+    """optimize.mv_textured_points: L_mv's reference pixels are the surface pixels within the
+    incidence limit, cut to those whose reference patch is textured (mvphoto.textured_pixels,
+    computed once per view and size); off, every such pixel (the rule before it)."""
+    import sys
+
+    from pipeline import mvphoto
+
+    train_module = sys.modules["pipeline.optimize.train"]
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(mv_textured_points=textured, mv_max_points=0, lambda_mv=0.15)
+    views = make_views(scene, priors, cfg, loss)
+    trainer = Trainer(init_from_cloud(cloud, scene, cfg), views, cfg, loss)
+    full = views.at(0, 2)
+    h, w = full.size
+    depth = torch.full((h, w), 2.0)
+    normal = torch.zeros(h, w, 3)
+    normal[..., 2] = -1.0
+    surface = torch.ones(h, w, dtype=torch.bool)
+    surface[:, : w // 4] = False
+    seen, calls = [], []
+    monkeypatch.setattr(train_module, "multiview_consistency", lambda d, n, pixels, *a, **k: seen.append(pixels))
+    real = mvphoto.textured_pixels
+    monkeypatch.setattr(train_module, "textured_pixels", lambda *a, **k: calls.append(1) or real(*a, **k))
+    for _ in range(2):
+        trainer._multiview(0, full.K, depth, normal, surface)
+    tex = real(views.grey_full[0], h, w, loss.mv_patch, loss.mv_min_patch_std, loss.mv_ncc_gamma)
+    assert 0 < int((tex & surface).sum()) < int(surface.sum())  # the test image has flat and textured pixels
+    want = torch.zeros(h, w, dtype=torch.bool)
+    want[seen[0][:, 1], seen[0][:, 0]] = True
+    assert len(seen[0]) == int(want.sum())
+    assert torch.equal(want, surface & tex if textured else surface)
+    assert len(calls) == (1 if textured else 0)
+
+
 def test_a_crop_weights_the_densification_statistic_by_its_share_of_the_view(problem, monkeypatch):
     import sys
 

@@ -209,6 +209,62 @@ class _ReferencePatches:
     weight: torch.Tensor | None
 
 
+def _patch_moments(grey_ref: torch.Tensor, pix: torch.Tensor, sx: float, sy: float, patch: int,
+                   ncc_gamma: float):
+    """The full-resolution reference patches of training pixels ``pix`` (M, 2) as (x, y):
+    positions ``ref_pos`` (M, P, 2), ``inside`` (M,) the whole patch in the image, centred grey
+    ``a_c`` (M, P), variance ``var_a`` (M,) and support ``weight`` (M, P) or ``None``. They
+    depend on the image alone, not on the rendered surface."""
+    H, W = grey_ref.shape
+    # Offsets (dx, dy), row-major over dy.
+    r = patch // 2
+    o = torch.arange(-r, r + 1, dtype=pix.dtype, device=pix.device)
+    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)  # (P, 2) as (x, y)
+    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
+    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)  # (M, P, 2)
+    inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
+              & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
+    a = _sample_grey(grey_ref, ref_pos)
+    weight = None
+    if ncc_gamma > 0:
+        # Adaptive support (Yoon & Kweon 2006): patch pixels whose grey differs from the
+        # centre's count less, so a patch across a depth edge is judged by the centre's side.
+        centre_grey = a[:, offsets.shape[0] // 2].unsqueeze(1)
+        weight = torch.exp(-(a - centre_grey).abs() / ncc_gamma)
+        weight = weight / weight.sum(-1, keepdim=True)
+        a_c = a - (weight * a).sum(-1, keepdim=True)
+        var_a = (weight * a_c * a_c).sum(-1)
+    else:
+        a_c = a - a.mean(-1, keepdim=True)
+        var_a = (a_c * a_c).mean(-1)
+    return ref_pos, inside, a_c, var_a, weight
+
+
+def textured_pixels(grey_ref_full: torch.Tensor, h: int, w: int, patch: int, min_patch_std: float,
+                    ncc_gamma: float, dtype: torch.dtype = torch.float32, chunk: int = 65536) -> torch.Tensor:
+    """The ``(h, w)`` bool mask of the training pixels whose full-resolution reference patch
+    lies inside ``grey_ref_full`` and has a grey std of at least ``min_patch_std``: the only
+    pixels where :func:`multiview_consistency` can have a valid pair. The same moments it
+    computes (in ``dtype``, the rendered depth's), so sampling L_mv's points among these
+    pixels drops only pairs that would have been invalid. Depends on the image alone: compute
+    it once per view and training size."""
+    if not torch.is_tensor(grey_ref_full) or grey_ref_full.ndim != 2:
+        raise ValueError(f"grey_ref_full must be an (H, W) tensor, got {getattr(grey_ref_full, 'shape', type(grey_ref_full))}")
+    if not isinstance(patch, int) or patch < 1 or patch % 2 == 0:
+        raise ValueError(f"patch must be an odd positive int, got {patch!r}")
+    H, W = grey_ref_full.shape
+    grey = grey_ref_full.to(dtype).detach()
+    dev = grey_ref_full.device
+    ys, xs = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
+    pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1).to(dtype)
+    out = torch.empty(len(pix), dtype=torch.bool, device=dev)
+    for start in range(0, len(pix), chunk):
+        part = pix[start:start + chunk]
+        _, inside, _, var_a, _ = _patch_moments(grey, part, W / w, H / h, patch, ncc_gamma)
+        out[start:start + chunk] = inside & (var_a.sqrt() >= min_patch_std)
+    return out.reshape(h, w)
+
+
 def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std,
                        ncc_gamma) -> _ReferencePatches:
     h, w = depth.shape
@@ -226,27 +282,7 @@ def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, pa
     rho_ok = rho.abs() > MIN_Z
     n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
 
-    # Reference patches at full resolution: offsets (dx, dy), row-major over dy.
-    r = patch // 2
-    o = torch.arange(-r, r + 1, dtype=depth.dtype, device=depth.device)
-    offsets = torch.stack(torch.meshgrid(o, o, indexing="xy"), -1).reshape(-1, 2)  # (P, 2) as (x, y)
-    centre = torch.stack([sx * (pix[:, 0] + 0.5) - 0.5, sy * (pix[:, 1] + 0.5) - 0.5], -1)
-    ref_pos = centre.unsqueeze(1) + offsets.unsqueeze(0)  # (M, P, 2)
-    ref_inside = ((ref_pos[..., 0] >= 0) & (ref_pos[..., 0] <= W - 1)
-                  & (ref_pos[..., 1] >= 0) & (ref_pos[..., 1] <= H - 1)).all(-1)
-    a = _sample_grey(grey_ref, ref_pos)
-    weight = None
-    if ncc_gamma > 0:
-        # Adaptive support (Yoon & Kweon 2006): patch pixels whose grey differs from the
-        # centre's count less, so a patch across a depth edge is judged by the centre's side.
-        centre_grey = a[:, offsets.shape[0] // 2].unsqueeze(1)
-        weight = torch.exp(-(a - centre_grey).abs() / ncc_gamma)
-        weight = weight / weight.sum(-1, keepdim=True)
-        a_c = a - (weight * a).sum(-1, keepdim=True)
-        var_a = (weight * a_c * a_c).sum(-1)
-    else:
-        a_c = a - a.mean(-1, keepdim=True)
-        var_a = (a_c * a_c).mean(-1)
+    ref_pos, ref_inside, a_c, var_a, weight = _patch_moments(grey_ref, pix, sx, sy, patch, ncc_gamma)
     ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
     ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)  # (M, P, 3)
     return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_h, weight)

@@ -143,6 +143,9 @@ class OptimizeConfig:
     surface_alpha: float = 0.5  # a pixel is surface (for L_gcf, L_nor) where alpha exceeds this
     gcf_max_points: int = 16384  # L_gcf on a random subset of at most this many surface pixels (0: all)
     mv_max_points: int = 4096  # L_mv on a random subset of at most this many surface pixels (0: all)
+    # Draw that subset among the pixels whose reference patch is textured (mvphoto.textured_pixels):
+    # the others give no pair. False: among every surface pixel (the committed runs' rule).
+    mv_textured_points: bool = False
     dn_depth: str = "median"  # depth whose normals L_dn compares: median (2DGS DTU) | expected
     near: float = 0.2  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
     far: float = 100.0

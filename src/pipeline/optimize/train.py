@@ -35,7 +35,7 @@ from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.errors import ConfigError, Interrupted
 from pipeline.losses import gcf_loss, normal_consistency_losses
-from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency, reference_pixels
+from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency, reference_pixels, textured_pixels
 from pipeline.optimize import ops, terms
 from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
@@ -115,6 +115,7 @@ class Trainer:
         self.last_depth: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
         # L_smooth's flat pixels per (view, size): they depend on the image alone (_flat).
         self.flat_cache: dict[tuple[int, tuple[int, int]], torch.Tensor] = {}
+        self.textured_cache: dict[tuple[int, tuple[int, int]], torch.Tensor] = {}
         self.it = 0
         self.removed_degenerate = 0
         self.seconds: dict[str, float] = defaultdict(float)
@@ -310,7 +311,10 @@ class Trainer:
         within ``loss.mv_max_incidence_deg`` of the ray, the other input views as sources
         (:mod:`pipeline.mvphoto`)."""
         cfg, lw, views = self.cfg, self.loss, self.views
-        ys, xs = torch.nonzero(reference_pixels(surface, normal, K_train, lw.mv_max_incidence_deg), as_tuple=True)
+        candidates = reference_pixels(surface, normal, K_train, lw.mv_max_incidence_deg)
+        if cfg.mv_textured_points:
+            candidates &= self._textured(i, surface.shape)
+        ys, xs = torch.nonzero(candidates, as_tuple=True)
         if 0 < cfg.mv_max_points < len(xs):
             pick = torch.randperm(len(xs), generator=self.generator)[: cfg.mv_max_points]
             ys, xs = ys[pick], xs[pick]
@@ -319,6 +323,17 @@ class Trainer:
                                      views.grey_full[i], self._sources(i, self.last_depth), patch=lw.mv_patch,
                                      min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px,
                                      ncc_gamma=lw.mv_ncc_gamma)
+
+    def _textured(self, i: int, size: tuple[int, int]) -> torch.Tensor:
+        """:func:`mvphoto.textured_pixels` of view ``i`` at the training ``size`` (h, w), once
+        per (view, size): L_mv samples its points among them, since a flat reference patch
+        gives no pair (on synth_textureless 68-73% of the masked pixels are flat)."""
+        key = (i, tuple(size))
+        if key not in self.textured_cache:
+            lw = self.loss
+            self.textured_cache[key] = textured_pixels(self.views.grey_full[i], size[0], size[1], lw.mv_patch,
+                                                       lw.mv_min_patch_std, lw.mv_ncc_gamma)
+        return self.textured_cache[key]
 
     def _flat(self, i: int, full: ViewData, window: tuple[int, int, int, int] | None) -> torch.Tensor:
         """:func:`terms.flat_pixels` of view ``i``'s masked target at ``full``'s size, computed
