@@ -148,6 +148,13 @@ def _scale_matrix(h: int, w: int, H: int, W: int, like: torch.Tensor) -> torch.T
     return _as([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]], like)
 
 
+def _check_reference(grey_ref_full, patch) -> None:
+    if not torch.is_tensor(grey_ref_full) or grey_ref_full.ndim != 2:
+        raise ValueError(f"grey_ref_full must be an (H, W) tensor, got {getattr(grey_ref_full, 'shape', type(grey_ref_full))}")
+    if not isinstance(patch, int) or patch < 1 or patch % 2 == 0:
+        raise ValueError(f"patch must be an odd positive int, got {patch!r}")
+
+
 def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma) -> None:
     if not torch.is_tensor(depth) or depth.ndim != 2 or not depth.is_floating_point():
         raise ValueError(f"depth must be a float (h, w) tensor, got {getattr(depth, 'shape', type(depth))}")
@@ -163,8 +170,7 @@ def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, pa
         raise ValueError(f"pixels must lie in the (h, w) = {(h, w)} training image (x in [0, w), y in [0, h))")
     _check_shape("K_train", K_train, (3, 3))
     _check_shape("K_full", K_full, (3, 3))
-    if not torch.is_tensor(grey_ref_full) or grey_ref_full.ndim != 2:
-        raise ValueError(f"grey_ref_full must be an (H, W) tensor, got {getattr(grey_ref_full, 'shape', type(grey_ref_full))}")
+    _check_reference(grey_ref_full, patch)
     # A K_full that is not S @ K_train would silently put the patches in the wrong place.
     H, W = grey_ref_full.shape
     expect = _scale_matrix(h, w, H, W, K_train.double()) @ K_train.double()
@@ -173,8 +179,6 @@ def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, pa
             f"K_full must equal S @ K_train for the training size {(h, w)} and image size {(H, W)}, "
             f"i.e. {expect.tolist()}, got {K_full.tolist()}"
         )
-    if not isinstance(patch, int) or patch < 1 or patch % 2 == 0:
-        raise ValueError(f"patch must be an odd positive int, got {patch!r}")
     if not (isinstance(ncc_gamma, (int, float)) and math.isfinite(ncc_gamma) and ncc_gamma >= 0):
         raise ValueError(f"ncc_gamma must be a finite number >= 0 (0: plain NCC), got {ncc_gamma!r}")
     for i, src in enumerate(sources):
@@ -248,10 +252,7 @@ def textured_pixels(grey_ref_full: torch.Tensor, h: int, w: int, patch: int, min
     computes (in ``dtype``, the rendered depth's), so sampling L_mv's points among these
     pixels drops only pairs that would have been invalid. Depends on the image alone: compute
     it once per view and training size."""
-    if not torch.is_tensor(grey_ref_full) or grey_ref_full.ndim != 2:
-        raise ValueError(f"grey_ref_full must be an (H, W) tensor, got {getattr(grey_ref_full, 'shape', type(grey_ref_full))}")
-    if not isinstance(patch, int) or patch < 1 or patch % 2 == 0:
-        raise ValueError(f"patch must be an odd positive int, got {patch!r}")
+    _check_reference(grey_ref_full, patch)
     H, W = grey_ref_full.shape
     grey = grey_ref_full.to(dtype).detach()
     dev = grey_ref_full.device

@@ -4,6 +4,9 @@ gsplat is imported lazily (installing it pulls a CUDA build of torch; it is not 
 dependency of this package). Mapping and known differences (docs/rasterizer.md):
 
 * pixel centres: gsplat puts them at ``+0.5``, so ``cx, cy`` are shifted by 0.5;
+* skew: gsplat's 2DGS projection reads ``fx, fy, cx, cy`` alone and drops ``K[0, 1]``, so a
+  camera whose skew moves a pixel by more than ``MAX_SKEW_SHIFT_PX`` is refused (DTU's
+  moves none by more than 1e-4 px);
 * depth: gsplat composites the surfel *centre* depth ``z_c`` per surfel, not the
   ray–splat intersection: ``depth_expected = sum w z_c / (sum w + eps)`` and
   ``depth_median`` is the median surfel's ``z_c``;
@@ -23,11 +26,28 @@ import torch
 from pipeline.rasterizer.project import colors_of
 from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
 
+# The largest shift (px) that gsplat's dropping of the skew may cause anywhere in the image.
+MAX_SKEW_SHIFT_PX = 0.01
+
+
+def skew_shift_px(camera: Camera) -> float:
+    """How far (px) the skew ``K[0, 1]`` moves a pixel of ``camera``'s image at most:
+    ``|s| |v - cy| / fy`` over the rows ``v``."""
+    K = camera.K
+    rows = max(abs(float(K[1, 2])), abs(camera.height - 1 - float(K[1, 2])))
+    return abs(float(K[0, 1])) * rows / float(K[1, 1])
+
 
 def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float) -> RenderOutput:
     """Render on the GPU. Surfels on the CPU are copied there (differentiably) and every
     map comes back to the CPU, so a trainer whose losses run on the CPU uses this backend
     unchanged; surfels on a CUDA device stay there."""
+    shift = skew_shift_px(camera)
+    if shift > MAX_SKEW_SHIFT_PX:
+        raise ValueError(
+            f"the cuda backend (gsplat) ignores the camera's skew K[0, 1] = {float(camera.K[0, 1]):.4g}, which moves "
+            f"pixels by up to {shift:.3g} px here (> {MAX_SKEW_SHIFT_PX} px): use the cpu backend for this camera"
+        )
     if not torch.cuda.is_available():
         raise ValueError("the cuda backend needs a CUDA device; none is available")
     try:

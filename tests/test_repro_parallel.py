@@ -1,0 +1,41 @@
+"""scripts/repro_parallel.py's ordering: dependencies first, the heaviest chain first."""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import pytest
+
+_spec = importlib.util.spec_from_file_location(
+    "repro_parallel", Path(__file__).resolve().parents[1] / "scripts" / "repro_parallel.py")
+repro_parallel = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(repro_parallel)
+
+
+def _brute_valid(order, deps):
+    seen = set()
+    for s in order:
+        if not deps[s] <= seen:
+            return False
+        seen.add(s)
+    return seen == set(deps)
+
+
+def test_every_stage_comes_after_the_stages_it_needs():
+    deps = {"init": set(), "train_a": {"init"}, "train_b": {"init"}, "score_a": {"train_a"},
+            "score_b": {"train_b"}, "table": {"score_a", "score_b"}, "other": set()}
+    order = repro_parallel.schedule_order(deps, {})
+    assert _brute_valid(order, deps)
+
+
+def test_the_heaviest_chain_starts_first():
+    # b's chain (b -> b2, 10 + 1) outweighs a's (a -> a2, 1 + 1) and c (5): b first, then c.
+    deps = {"a": set(), "a2": {"a"}, "b": set(), "b2": {"b"}, "c": set()}
+    order = repro_parallel.schedule_order(deps, {"b": 10.0, "c": 5.0})
+    assert order[:2] == ["b", "c"]
+    assert _brute_valid(order, deps)
+
+
+def test_a_cycle_is_an_error_naming_its_stages():
+    with pytest.raises(ValueError, match="cycle.*'x'"):
+        repro_parallel.schedule_order({"x": {"y"}, "y": {"x"}, "z": set()}, {})
