@@ -6,7 +6,9 @@ On the 2-core machines here one training barely gains from a second numba thread
 render's per-iteration set-up, the losses and meshing are serial), so two stages at once,
 one thread each, finish a full repro in about 0.6x the time of `dvc repro`. Each stage runs
 exactly its `cmd` from dvc.yaml, after its outputs are removed as `dvc repro` removes them;
-a failed stage stops its dependents only, and its log is kept.
+a failed stage stops its dependents only, and its log is kept. A file STOP in the log folder
+ends a run cleanly: no new stage starts, the running ones finish and are committed, and a
+later run takes up what is left.
 
     python scripts/repro_parallel.py [--jobs 2] [--logs .dvc/tmp/repro_parallel] [--dry] [--done STAGE ...]
 """
@@ -119,6 +121,7 @@ def main() -> None:
 
     logs = Path(args.logs)
     logs.mkdir(parents=True, exist_ok=True)
+    (logs / "STOP").unlink(missing_ok=True)  # an earlier run's
     env = {**os.environ, "NUMBA_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     running: dict[str, tuple[subprocess.Popen, float]] = {}
     done: set[str] = set()
@@ -151,6 +154,9 @@ def main() -> None:
                 committing = None
             if to_commit and (len(to_commit) >= 12 or not (pending or running)):
                 committing, to_commit = start_commit(to_commit), []
+        if pending and (logs / "STOP").exists():
+            print(f"{time.strftime('%H:%M:%S')} STOP: {len(pending)} stage(s) left to a later run", flush=True)
+            pending = []
         for n in list(pending):
             if len(running) >= args.jobs:
                 break
