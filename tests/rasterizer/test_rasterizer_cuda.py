@@ -37,7 +37,7 @@ def test_cuda_matches_cpu_where_the_models_agree():
     # camera has none. What is left differs by design (low-pass centre, 3 vs 3.33 sigma): on an
     # H200 with gsplat (PR 932) 3.6e-4 / 3.2e-4 / 5.9e-4 mean and 0.3% / 0.3% / 0.9% of
     # pixels off by more than 1% of the maximum; with the test camera's skew 0.9% / 0.7% /
-    # 1.3% and 28% / 18% / 39% (docs/rasterizer.md, "The cuda backend, run").
+    # 1.3% and 28% / 18% / 39% (docs/rasterizer.md, "The cuda backend, second run").
     cam = _no_skew(random_camera(64, 48, 11))
     s = random_surfels(500, cam, seed=11, dtype=torch.float32, opacity=(0.05, 0.9))
     a = rasterize(s, cam, "cpu")
