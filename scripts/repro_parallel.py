@@ -1,12 +1,12 @@
 """`dvc repro` on several single-threaded workers: every stage that `dvc status` calls
 changed, and everything downstream of it, run in dependency order, then recorded in
-dvc.lock with `dvc commit` (README, "Reproducing on a small machine").
+dvc.lock with `dvc commit`'s work (README, first section).
 
 On the 2-core machines here one training barely gains from a second numba thread: two fast
 trainings with their scoring, one thread each and at once, took 146 s against 2 x 125 s one
-after the other (2026-11-28). Each stage runs
-exactly its `cmd` from dvc.yaml, after its outputs are removed as `dvc repro` removes them;
-a failed stage stops its dependents only, and its log is kept. A file STOP in the log folder
+after the other (2026-11-28). Each stage runs exactly its `cmd` from dvc.yaml, after its
+outputs are removed as `dvc repro` removes them; a failed stage stops its dependents only,
+and its log is kept. A file STOP in the log folder
 ends a run cleanly: no new stage starts, the running ones finish and are committed, and a
 later run takes up what is left.
 
