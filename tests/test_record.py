@@ -4,11 +4,13 @@ from __future__ import annotations
 
 import json
 import math
+import re
 
 import pytest
 
 from pipeline.errors import MissingInputError
-from pipeline.evaluation.record import Chamfer, HeldOut, MetricsError, SceneMetrics
+from pipeline.evaluation.record import (Chamfer, HeldOut, MetricsError, SceneMetrics, distance_band_key,
+                                        distance_band_lower_mm)
 
 COMMON = {"scene": "s", "train": {"iterations": 5}, "timing": {"wall_s": 1.0}, "mesh": {"triangles_kept": 3}}
 
@@ -96,3 +98,19 @@ def test_a_record_without_the_splits_reads_back_without_them(tmp_path):
     back = SceneMetrics.read(tmp_path / "m.json")
     assert back.chamfer.accuracy_by_distance is None and back.chamfer.completeness_by_views_seen is None
     assert not any("_by_" in k for k in json.loads((tmp_path / "m.json").read_text())["chamfer"])
+
+
+def test_accuracy_beyond_sums_the_bands_from_a_lower_edge():
+    c = Chamfer.of(_evaluate_mesh_result(accuracy_by_distance={
+        distance_band_key(0, 0.5): {"fraction": 0.7, "share_mm": 0.1}, distance_band_key(0.5, 1): {"fraction": 0.2, "share_mm": 0.15},
+        distance_band_key(1, 2): {"fraction": 0.06, "share_mm": 0.09}, distance_band_key(2, 20): {"fraction": 0.04, "share_mm": 0.3}}))
+    assert c.accuracy_beyond(1.0) == pytest.approx((0.39, 0.10))
+    assert c.accuracy_beyond(0.0) == pytest.approx((0.64, 1.0))
+    assert all(math.isnan(x) for x in c.accuracy_beyond(50.0))
+    assert all(math.isnan(x) for x in Chamfer.of(_evaluate_mesh_result(accuracy_by_distance=None)).accuracy_beyond(1.0))
+
+
+@pytest.mark.parametrize("key", ["1", "a-2", "1-b", ""])
+def test_malformed_distance_band_is_named(key):
+    with pytest.raises(MetricsError, match=re.escape(repr(key))):
+        distance_band_lower_mm(key)

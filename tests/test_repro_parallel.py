@@ -1,4 +1,4 @@
-"""scripts/repro_parallel.py's ordering: dependencies first, the heaviest chain first."""
+"""scripts/repro_parallel.py: the ordering (dependencies first, the heaviest chain first) and the commit."""
 from __future__ import annotations
 
 import importlib.util
@@ -39,3 +39,25 @@ def test_the_heaviest_chain_starts_first():
 def test_a_cycle_is_an_error_naming_its_stages():
     with pytest.raises(ValueError, match="cycle.*'x'"):
         repro_parallel.schedule_order({"x": {"y"}, "y": {"x"}, "z": set()}, {})
+
+
+def test_commit_records_the_stage_and_ignores_its_outputs(tmp_path, monkeypatch):
+    """A stage the workers ran is committed as `dvc repro` would leave it: in dvc.lock with
+    its output's hash, the output in .gitignore (else `git status` shows DVC's outputs)."""
+    import subprocess
+    import yaml
+
+    monkeypatch.chdir(tmp_path)
+    subprocess.run(["git", "init", "-q"], check=True)
+    subprocess.run(["dvc", "init", "-q"], check=True)
+    Path("dvc.yaml").write_text(yaml.safe_dump({"stages": {"make": {"cmd": "true", "outs": ["out/data"]}}}))
+    Path("out/data").mkdir(parents=True)
+    Path("out/data/a.txt").write_text("surfels\n")
+    repro_parallel.commit_stages(["make"])
+    lock = yaml.safe_load(Path("dvc.lock").read_text())
+    assert lock["stages"]["make"]["outs"][0]["path"] == "out/data"
+    assert lock["stages"]["make"]["outs"][0]["md5"].endswith(".dir")
+    assert Path("out/.gitignore").read_text().split() == ["/data"]
+    status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"], capture_output=True,
+                            text=True, check=True).stdout
+    assert "out/data" not in status

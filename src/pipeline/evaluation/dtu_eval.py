@@ -37,6 +37,7 @@ from scipy.spatial import cKDTree
 from pipeline import atomic, geometry
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.gt import GroundTruth, read_mesh
+from pipeline.evaluation.record import distance_band_key
 from pipeline.evaluation.sampling import check_mesh, radius_downsample, sample_mesh
 from pipeline.evaluation.seen import InputView, accuracy_by_views_seen, completeness_by_views_seen
 
@@ -168,7 +169,7 @@ def by_distance(d: np.ndarray, max_dist: float, edges: tuple[float, ...] = DISTA
         if lo >= max_dist:
             break
         band = used[(used >= lo) & (used < hi)]
-        key = f"{lo:g}-{min(hi, max_dist):g}"
+        key = distance_band_key(lo, min(hi, max_dist))
         out[key] = {"fraction": len(band) / len(used) if len(used) else math.nan,
                     "share_mm": float(band.sum() / len(used)) if len(used) else math.nan}
     return out

@@ -58,6 +58,23 @@ def _groups(groups: dict | None) -> dict | None:
     return {g: {k: _nan(v) for k, v in r.items()} for g, r in groups.items()}
 
 
+def distance_band_key(lo_mm: float, hi_mm: float) -> str:
+    """The key of the distance band ``[lo_mm, hi_mm)`` in ``*_by_distance`` (``"0.5-1"``)."""
+    return f"{lo_mm:g}-{hi_mm:g}"
+
+
+def distance_band_lower_mm(key: str) -> float:
+    """The lower edge (mm) of the band named ``key`` by :func:`distance_band_key`."""
+    lo, sep, hi = key.partition("-")
+    try:
+        if not sep:
+            raise ValueError
+        float(hi)
+        return float(lo)
+    except ValueError:
+        raise MetricsError(f"distance band {key!r} is not 'lo-hi' in mm") from None
+
+
 # The splits of accuracy and completeness a Chamfer record keeps (each optional: a real scan has
 # no views-seen split, reports scored before a split existed lack it).
 SPLITS = ("accuracy_by_views_seen", "completeness_by_views_seen", "accuracy_by_distance", "completeness_by_distance")
@@ -94,6 +111,14 @@ class Chamfer:
                 for k in ("accuracy_mm", "completeness_mm", "overall_mm")}
         return cls(**{k: _nan(v) for k, v in nums.items()}, valid=bool(valid), problems=tuple(data.get("problems", ())),
                    counts=dict(data.get("counts", {})), **{key: _groups(data.get(key)) for key in SPLITS})
+
+    def accuracy_beyond(self, lo_mm: float) -> tuple[float, float]:
+        """Share of the accuracy mean (mm) and fraction of the used mesh samples in the distance
+        bands from ``lo_mm`` up; NaN where the record has no distance split or no such band."""
+        far = [b for key, b in (self.accuracy_by_distance or {}).items() if distance_band_lower_mm(key) >= lo_mm]
+        if not far:
+            return math.nan, math.nan
+        return sum(b.get("share_mm", math.nan) for b in far), sum(b.get("fraction", math.nan) for b in far)
 
     def figures(self, where: str) -> dict[str, float]:
         """``overall``, ``accuracy``, ``completeness`` (mm), all finite, else an error naming ``where``."""

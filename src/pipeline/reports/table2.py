@@ -35,7 +35,7 @@ NOT_A_METHOD = (MVS_TSDF, LIMIT, EXACT_DEPTH)  # rows without the method's compo
 YARDSTICKS = (LIMIT, EXACT_DEPTH)  # not methods: never the best row
 # The method's components (CSV column: Markdown header), in the table's column order.
 COMPONENTS = {"dense_init": "dense init", "gcf": "L_gcf", "nor": "L_nor", "mv": "L_mv", "photo_reset": "photo reset",
-              "ncc_support": "NCC support weights", "smooth": "L_smooth (flat patches)",
+              "ncc_support": "NCC support weights", "mv_textured": "L_mv points on texture", "smooth": "L_smooth (flat patches)",
               "init_depth_mesh": "init depth in the mesh"}
 
 
@@ -66,11 +66,10 @@ def _cell(path: Path, chamfer: str) -> dict:
     c = Chamfer.parse(data, f"{path}: {chamfer}")
     seen2 = (c.accuracy_by_views_seen or {}).get("2+") or {}
     gt_seen = c.completeness_by_views_seen or {}
-    far = [b for band, b in (c.accuracy_by_distance or {}).items() if float(band.split("-")[0]) >= FAR_MM]
+    acc_far, acc_far_fraction = c.accuracy_beyond(FAR_MM)
     return {**c.figures(f"{path}: {chamfer}"), "covered": c.covered_fraction(f"{path}: {chamfer}"),
             "seen2": _finite(seen2.get("accuracy_mm")), "seen2_fraction": _finite(seen2.get("fraction")),
-            "acc_far": sum(_finite(b.get("share_mm")) for b in far) if far else math.nan,
-            "acc_far_fraction": sum(_finite(b.get("fraction")) for b in far) if far else math.nan,
+            "acc_far": acc_far, "acc_far_fraction": acc_far_fraction,
             **{f"comp_seen{g}": _finite((gt_seen.get(g) or {}).get("completeness_mm")) for g in ("2+", "1", "0")}}
 
 
@@ -85,6 +84,7 @@ def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool |
     return {"dense_init": (variant.init if variant else "mvs") == "mvs", "gcf": loss.lambda_gcf > 0,
             "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
             "photo_reset": optimize.photo_reset.enabled, "ncc_support": loss.mv_ncc_gamma > 0,
+            "mv_textured": optimize.mv_textured_points,
             "smooth": loss.lambda_smooth > 0,
             "init_depth_mesh": mesh.init_depth_rel_tol > 0}
 
