@@ -61,3 +61,45 @@ def test_commit_records_the_stage_and_ignores_its_outputs(tmp_path, monkeypatch)
     status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=all"], capture_output=True,
                             text=True, check=True).stdout
     assert "out/data" not in status
+
+
+def _tiny_repo(tmp_path, cmd_a: str) -> None:
+    import subprocess
+    import yaml
+
+    Path("dvc.yaml").write_text(yaml.safe_dump({"stages": {
+        "a": {"cmd": cmd_a, "outs": ["a.txt"]},
+        "b": {"cmd": "cat a.txt > b.txt && echo ran >> b_runs.log", "deps": ["a.txt"], "outs": ["b.txt"]}}}))
+    subprocess.run(["git", "init", "-q"], check=True)
+    subprocess.run(["dvc", "init", "-q"], check=True)
+    Path(".gitignore").write_text("b_runs.log\n")
+
+
+def _run_main(monkeypatch):
+    import sys
+
+    monkeypatch.setattr(sys, "argv", ["repro_parallel.py", "--jobs", "1"])
+    with pytest.raises(SystemExit) as end:
+        repro_parallel.main()
+    assert end.value.code == 0
+
+
+@pytest.mark.parametrize("new_cmd_a, b_reruns", [("printf 'x\\n' > a.txt", False), ("echo y > a.txt", True)])
+def test_a_stage_after_one_that_wrote_the_same_bytes_is_left_alone(tmp_path, monkeypatch, new_cmd_a, b_reruns):
+    """As `dvc repro`: `a`'s command changed, so `a` runs; `b` runs again only if `a`'s
+    output came out different from the one b's dvc.lock entry records."""
+    import subprocess
+    import yaml
+
+    monkeypatch.chdir(tmp_path)
+    _tiny_repo(tmp_path, "echo x > a.txt")
+    subprocess.run(["dvc", "repro", "-q"], check=True)
+    assert Path("b_runs.log").read_text().count("ran") == 1
+    spec = yaml.safe_load(Path("dvc.yaml").read_text())
+    spec["stages"]["a"]["cmd"] = new_cmd_a
+    Path("dvc.yaml").write_text(yaml.safe_dump(spec))
+    _run_main(monkeypatch)
+    assert Path("b_runs.log").read_text().count("ran") == (2 if b_reruns else 1)
+    assert Path("b.txt").read_text() == ("y\n" if b_reruns else "x\n")
+    status = subprocess.run(["dvc", "status", "-q"], capture_output=True, text=True)
+    assert status.returncode == 0 and "changed" not in status.stdout, status.stdout
