@@ -63,7 +63,7 @@ def test_commit_records_the_stage_and_ignores_its_outputs(tmp_path, monkeypatch)
     assert "out/data" not in status
 
 
-def _tiny_repo(tmp_path, cmd_a: str) -> None:
+def _tiny_repo(cmd_a: str) -> None:
     import subprocess
     import yaml
 
@@ -92,7 +92,7 @@ def test_a_stage_after_one_that_wrote_the_same_bytes_is_left_alone(tmp_path, mon
     import yaml
 
     monkeypatch.chdir(tmp_path)
-    _tiny_repo(tmp_path, "echo x > a.txt")
+    _tiny_repo("echo x > a.txt")
     subprocess.run(["dvc", "repro", "-q"], check=True)
     assert Path("b_runs.log").read_text().count("ran") == 1
     spec = yaml.safe_load(Path("dvc.yaml").read_text())
