@@ -4,6 +4,7 @@ minimum at the true plane of an analytic textured-plane scene, bad input, and th
 forward-backward occlusion check."""
 from __future__ import annotations
 
+import copy
 import math
 
 import numpy as np
@@ -91,11 +92,14 @@ def depth_lookup_np(D: np.ndarray, x: float, y: float) -> float | None:
     return None
 
 
-def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, patch, min_std, max_fb, gamma=0.0):
+def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, patch, min_std, max_fb, gamma=0.0,
+                   best=0, max_cost=2.0):
     """Loop-per-pixel, per-source, per-patch-position PGSR consistency in numpy. Warps by
     explicit ray-plane intersection (not a homography). ``sources``: tuples
     ``(K_full, ref_to_src, grey, depth_train or None, K_train or None)``; ``gamma > 0``:
-    NCC with adaptive support weights ``exp(-|a - a_centre| / gamma)``.
+    NCC with adaptive support weights ``exp(-|a - a_centre| / gamma)``; ``best > 0``: only
+    each pixel's ``best`` valid pairs of lowest cost count (the first source on ties);
+    ``max_cost``: pairs of higher cost are invalid.
     Returns ``(photo, geo, valid_fraction, n_valid, n_geo)``."""
     h, w = depth.shape
     H, W = grey_ref.shape
@@ -120,6 +124,7 @@ def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, pa
         var_a = wts @ (a - ma) ** 2 if ref_in else 0.0
         if not (z > MIN_Z and abs(rho) > MIN_Z and ref_in and math.sqrt(var_a) >= min_std):
             continue
+        pairs = []  # (cost, weight, phi or None) of this pixel's valid pairs, in source order
         for Ks_full, T, grey, D, Ks in sources:
             R, t = T[:3, :3], T[:3, 3]
             Xs = R @ X + t
@@ -143,7 +148,7 @@ def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, pa
             mb = wts @ b
             ncc = (wts @ ((a - ma) * (b - mb))) / np.sqrt(var_a * (wts @ (b - mb) ** 2) + 1e-8)
             cost = min(max(1.0 - ncc, 0.0), 2.0)
-            weight = 1.0
+            weight, phi = 1.0, None
             if D is not None:
                 px, py = (Ks @ Xs)[:2] / Xs[2]
                 d = depth_lookup_np(D, px, py)
@@ -157,6 +162,12 @@ def slow_reference(depth, normal, pixels, K_train, K_full, grey_ref, sources, pa
                 if phi >= max_fb:
                     continue
                 weight = math.exp(-phi)
+            if cost <= max_cost:
+                pairs.append((cost, weight, phi))
+        if best > 0:
+            pairs = sorted(pairs, key=lambda c: c[0])[:best]  # sorted() is stable: source order on ties
+        for cost, weight, phi in pairs:
+            if phi is not None:
                 geo += phi
                 n_geo += 1
             photo += weight * cost
@@ -265,6 +276,38 @@ def test_matches_slow_reference(seed, patch, max_fb, gamma):
     assert out["valid_fraction"].item() == pytest.approx(frac, abs=1e-12)
     assert out["photo"].item() == pytest.approx(photo, abs=1e-10)
     assert out["geo"].item() == pytest.approx(geo, abs=1e-10)
+
+
+@pytest.mark.parametrize("best,max_cost", [(1, 2.0), (2, 2.0), (0, 0.6), (1, 0.8)])
+def test_source_selection_matches_slow_reference(best, max_cost):
+    """Only each pixel's lowest-cost pairs (``best_sources``) and pairs below ``max_cost``
+    count, in both terms; with two sources ``best_sources`` 2 is every source."""
+    p = random_problem(3)
+    h, w = p["depth"].shape
+    pixels = all_pixels(h, w)
+    out = multiview_consistency(**to_torch(p, pixels, patch=3, max_fb_px=1.0, best_sources=best, max_cost=max_cost))
+    photo, geo, frac, n_valid, n_geo = slow_reference(
+        p["depth"], p["normal"], pixels.tolist(), p["K_train"], p["K_full"], p["grey_ref"], p["sources"],
+        3, 0.01, 1.0, 0.0, best=best, max_cost=max_cost)
+    _, _, _, n_all, _ = slow_reference(p["depth"], p["normal"], pixels.tolist(), p["K_train"], p["K_full"],
+                                       p["grey_ref"], p["sources"], 3, 0.01, 1.0)
+    # Non-trivial: the selection drops pairs (except best 2 of 2 sources) and keeps some.
+    assert 5 <= n_valid and n_geo >= 3 and (n_valid < n_all) == (best == 1 or max_cost < 2.0)
+    assert out["valid_fraction"].item() == pytest.approx(frac, abs=1e-12)
+    assert out["photo"].item() == pytest.approx(photo, abs=1e-10)
+    assert out["geo"].item() == pytest.approx(geo, abs=1e-10)
+
+
+def test_source_selection_gradcheck():
+    p = random_problem(5, h=5, w=6, noise_image=False, depth_noise=0.003, src_depth_noise=0.01, zero_frac=0.0)
+    pixels = torch.tensor([[2, 2], [3, 2], [3, 3], [2, 1]])
+    args = to_torch(p, pixels, patch=3, max_fb_px=2.0, best_sources=1)
+    args["sources"] = [SourceView(s.K_full, s.ref_to_src, s.grey_full) for s in args["sources"]]
+    depth = args.pop("depth").requires_grad_()
+    normal = args.pop("normal").requires_grad_()
+    assert multiview_consistency(depth, normal, **args)["photo"] > 1e-3
+    assert torch.autograd.gradcheck(lambda d, n: multiview_consistency(d, n, **args)["photo"], (depth, normal),
+                                    eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
 def test_float32_close_to_float64():
@@ -416,6 +459,21 @@ def test_true_plane_is_the_minimum(scene):
     assert abs(int(np.argmin(sweep)) - 6) <= 1
     # The geometric term grows with the depth error too (the sources' depths are exact).
     assert truth["geo"] < scene.loss(depth=scene.depth * 1.01, with_depth=True)["geo"] < 1.0
+
+
+def test_best_source_keeps_the_source_that_sees_the_point(scene):
+    """One source shows something else where the plane is (an occluder's texture, within the
+    forward-backward tolerance): with every source the cost at the true plane is high; with
+    each pixel's best source it is as low as with the seeing source alone, and the true plane
+    is still the minimum along the depth."""
+    occluded = copy.copy(scene)
+    occluded.grey_src = [scene.grey_src[0], np.random.default_rng(11).uniform(0.3, 0.7, scene.grey_src[1].shape)]
+    every = occluded.loss()["photo"].item()
+    best = occluded.loss(best_sources=1)["photo"].item()
+    assert best < 0.05 and every > 10 * best
+    step = 0.005 * abs(scene.rho)
+    sweep = [occluded.loss(depth=scene.depth + k * step, best_sources=1)["photo"].item() for k in range(-4, 5)]
+    assert int(np.argmin(sweep)) == 4 and sweep[0] > 5 * best and sweep[-1] > 5 * best
 
 
 # ------------------------------------------------------------------------ 5. bad input

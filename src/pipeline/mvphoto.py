@@ -371,6 +371,8 @@ def multiview_consistency(
     min_patch_std: float = 0.01,
     max_fb_px: float = 1.0,
     ncc_gamma: float = 0.0,
+    best_sources: int = 0,
+    max_cost: float = 2.0,
 ) -> dict[str, torch.Tensor]:
     """PGSR's multi-view photometric and geometric consistency of one reference view.
 
@@ -413,6 +415,9 @@ def multiview_consistency(
         max_fb_px: forward-backward reprojection error (training pixels) at which a pair
             becomes invalid.
         ncc_gamma: grey scale of the adaptive support weights (0: plain NCC, PGSR's).
+        best_sources: > 0: of each pixel's valid pairs only the ``best_sources`` of lowest
+            cost count (ties by source order), in both terms; 0: all (PGSR's).
+        max_cost: pairs whose cost exceeds it are invalid (2: none is).
 
     Returns ``{"photo": sum of exp(-phi) cost over valid pairs / number of valid pairs,
     "geo": mean phi over valid pairs with the check (training pixels),
@@ -429,13 +434,13 @@ def multiview_consistency(
     ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
     Kt, pix = ref.Kt, ref.pix
 
-    photo_sum, geo_sum = zero, zero
-    n_valid = n_geo = 0
+    costs, weights, valids, phis, checked = [], [], [], [], []
     for src in sources:
         R, t, pos, Xs, front, valid = _warp_into(ref, src, depth)
         cost = (1.0 - _ncc(ref, _as(src.grey_full, depth).detach(), pos, valid)).clamp(0.0, 2.0)
 
         weight = torch.ones_like(cost)
+        phi = torch.zeros_like(cost)
         if src.depth_train is not None:
             Ks = _as(src.K_train, depth)
             p, _, d_src, d_ok = _source_depth_at(Xs, front, src, depth)
@@ -447,10 +452,26 @@ def multiview_consistency(
             phi = torch.linalg.vector_norm(rep - pix, dim=-1)  # its backward is 0, not NaN, at 0
             valid = valid & d_ok & q_ok & (phi.detach() < max_fb_px)
             weight = torch.exp(-phi.detach())
-            geo_sum = geo_sum + torch.where(valid, phi, torch.zeros_like(phi)).sum()
-            n_geo += int(valid.sum())
-        photo_sum = photo_sum + torch.where(valid, weight * cost, torch.zeros_like(cost)).sum()
-        n_valid += int(valid.sum())
+        costs.append(cost)
+        weights.append(weight)
+        valids.append(valid)
+        phis.append(phi)
+        checked.append(src.depth_train is not None)
+    if not sources:
+        return {"photo": zero, "geo": zero, "valid_fraction": torch.tensor(0.0, dtype=depth.dtype, device=depth.device)}
+    cost, weight, phi, valid = torch.stack(costs), torch.stack(weights), torch.stack(phis), torch.stack(valids)
+    if max_cost < 2.0:
+        valid = valid & (cost.detach() <= max_cost)
+    if 0 < best_sources < len(sources):
+        # Each pixel keeps its best_sources lowest-cost valid pairs: a source that does not see
+        # the point (occluded, yet within the forward-backward tolerance) matches worst.
+        key = torch.where(valid, cost.detach(), torch.full_like(cost, math.inf))
+        rank = torch.argsort(torch.argsort(key, dim=0, stable=True), dim=0, stable=True)
+        valid = valid & (rank < best_sources)
+    geo_valid = valid & torch.tensor(checked, device=depth.device).view(-1, 1)
+    photo_sum = zero + torch.where(valid, weight * cost, torch.zeros_like(cost)).sum()
+    geo_sum = zero + torch.where(geo_valid, phi, torch.zeros_like(phi)).sum()
+    n_valid, n_geo = int(valid.sum()), int(geo_valid.sum())
 
     return {
         "photo": photo_sum / max(n_valid, 1),

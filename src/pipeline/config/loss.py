@@ -33,6 +33,10 @@ class LossConfig:
     mv_patch: int = 7  # NCC patch side, full-resolution pixels (odd)
     mv_min_patch_std: float = 0.01  # grey std below which a patch is flat: no NCC there
     mv_max_fb_px: float = 1.0  # forward-backward reprojection error (training pixels) above which a pair is occluded
+    # Of each reference pixel's valid L_mv pairs only this many of lowest NCC cost count (a
+    # source that does not see the point matches worst); 0: every source (PGSR's).
+    mv_best_sources: int = 0
+    mv_max_cost: float = 2.0  # L_mv pairs whose cost 1 - NCC exceeds this are dropped (2: none)
     # Adaptive support weights of L_mv's and the photo reset's NCC: patch pixels weighted by
     # exp(-|grey - centre grey| / mv_ncc_gamma) (grey in [0, 1]). 0: plain NCC (PGSR).
     mv_ncc_gamma: float = 0.0
@@ -57,6 +61,10 @@ class LossConfig:
             raise ConfigError(f"loss.mv_ncc_gamma must be a finite number >= 0 (0: plain NCC), got {self.mv_ncc_gamma}")
         if min(self.lambda_mv, self.lambda_mvgeo, self.mv_min_patch_std) < 0 or self.mv_max_fb_px <= 0:
             raise ConfigError("loss.lambda_mv, lambda_mvgeo and mv_min_patch_std must be >= 0 and mv_max_fb_px > 0")
+        if not (isinstance(self.mv_best_sources, int) and self.mv_best_sources >= 0):
+            raise ConfigError(f"loss.mv_best_sources must be an int >= 0 (0: every source), got {self.mv_best_sources!r}")
+        if not 0.0 < self.mv_max_cost <= 2.0:
+            raise ConfigError(f"loss.mv_max_cost must be in (0, 2] (1 - NCC lies in [0, 2]), got {self.mv_max_cost}")
         if not 0.0 < self.mv_max_incidence_deg <= 90.0:
             raise ConfigError(f"loss.mv_max_incidence_deg must be in (0, 90], got {self.mv_max_incidence_deg}")
         if self.lambda_mvs < 0 or not 0.0 <= self.mvs_final:

@@ -322,7 +322,8 @@ class Trainer:
         return multiview_consistency(depth, normal, torch.stack([xs, ys], 1), K_train, K_full,
                                      views.grey_full[i], self._sources(i, self.last_depth), patch=lw.mv_patch,
                                      min_patch_std=lw.mv_min_patch_std, max_fb_px=lw.mv_max_fb_px,
-                                     ncc_gamma=lw.mv_ncc_gamma)
+                                     ncc_gamma=lw.mv_ncc_gamma, best_sources=lw.mv_best_sources,
+                                     max_cost=lw.mv_max_cost)
 
     def _textured(self, i: int, size: tuple[int, int]) -> torch.Tensor:
         """:func:`mvphoto.textured_pixels` of view ``i`` at the training ``size`` (h, w), once
