@@ -36,6 +36,7 @@ YARDSTICKS = (LIMIT, EXACT_DEPTH)  # not methods: never the best row
 # The method's components (CSV column: Markdown header), in the table's column order.
 COMPONENTS = {"dense_init": "dense init", "gcf": "L_gcf", "nor": "L_nor", "mv": "L_mv", "photo_reset": "photo reset",
               "ncc_support": "NCC support weights", "mv_textured": "L_mv points on texture",
+              "mv_ceiling": "L_mv cost ceiling",
               "means_lr_held": "means lr held", "smooth": "L_smooth (flat patches)",
               "init_depth_mesh": "init depth in the mesh"}
 
@@ -86,6 +87,7 @@ def _components(params: dict, variant: VariantConfig | None) -> dict[str, bool |
             "nor": loss.lambda_nor > 0, "mv": loss.lambda_mv > 0 or loss.lambda_mvgeo > 0,
             "photo_reset": optimize.photo_reset.enabled, "ncc_support": loss.mv_ncc_gamma > 0,
             "mv_textured": optimize.mv_textured_points,
+            "mv_ceiling": loss.mv_max_cost < 2.0,  # 1 - NCC <= 2: a ceiling of 2 drops no pair
             "means_lr_held": optimize.lr.means_final >= optimize.lr.means,
             "smooth": loss.lambda_smooth > 0,
             "init_depth_mesh": mesh.init_depth_rel_tol > 0}
