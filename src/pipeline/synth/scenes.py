@@ -69,7 +69,8 @@ class SynthScene:
         """``P`` (4,): ``[x, 1] @ P > 0`` for world points above the evaluation plane."""
         up = self.up_world
         origin = self.local_to_world[:3, 3] + PLANE_ABOVE_GROUND_MM * up
-        return np.r_[up, -up @ origin]
+        # Summed in a fixed order, not by BLAS (whose dot product rounds differently on AVX-512).
+        return np.r_[up, -(up[0] * origin[0] + up[1] * origin[1] + up[2] * origin[2])]
 
     def gt_mesh_local(self) -> tuple[np.ndarray, np.ndarray]:
         """The object's parts plus a disk of table reaching ``GT_GROUND_MARGIN_MM`` beyond
