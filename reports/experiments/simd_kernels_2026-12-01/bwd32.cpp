@@ -9,6 +9,7 @@ enum { GEO_AX = 0, GEO_AY = 3, GEO_A0 = 6, GEO_DET = 9, GEO_CX = 10, GEO_CY = 11
 enum { S_AX = 0, S_AY = 3, S_A0 = 6, S_DET = 9, S_CX = 10, S_CY = 11, S_TW2 = 12, S_OPACITY = 13, S_NORMAL = 14, S_FEATURE = 17 };
 enum { PX_GA = 0, PX_GD, PX_GN, PX_GN1, PX_GN2, PX_W, PX_M1, PX_M2, PX_GMED, PX_MED, PX_FEAT };
 #define MAXC 8
+#define PX_DEXP (PX_FEAT + MAXC)
 typedef float vf __attribute__((vector_size(64)));
 typedef int32_t vi __attribute__((vector_size(64)));
 static inline double hsum(vf a) { return _mm512_reduce_add_ps((__m512)a); }
@@ -26,7 +27,7 @@ extern "C" void backward(const int64_t *tile_start, const int64_t *slot_of_entry
     const int64_t ss = 17 + C;
 #pragma omp parallel for schedule(static, 1) num_threads(n_workers)
     for (int64_t wk = 0; wk < n_workers; wk++) {
-        float tab[(PX_FEAT + MAXC) * NPX] __attribute__((aligned(64)));
+        float tab[(PX_FEAT + MAXC + 1) * NPX] __attribute__((aligned(64)));
         float B[NPX] __attribute__((aligned(64)));
         const vf lane = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
         for (int64_t it = worker_start[wk]; it < worker_start[wk + 1]; it++) {
@@ -40,7 +41,9 @@ extern "C" void backward(const int64_t *tile_start, const int64_t *slot_of_entry
                     double inv = 1.0 / (1.0 - aux_T[o] + depth_eps);
                     double ge = g_depth[o], gd = g_dist[o];
                     tab[PX_GD * NPX + p] = ge * inv;
-                    tab[PX_GA * NPX + p] = (double)g_alpha[o] - ge * aux_D[o] * inv * inv;
+                    // dL/dA of D / (A + eps) folded as gD (z - D / (A + eps)): no cancellation in float32.
+                    tab[PX_GA * NPX + p] = g_alpha[o];
+                    tab[PX_DEXP * NPX + p] = aux_D[o] * inv;
                     for (int k = 0; k < 3; k++)
                         tab[(PX_GN + k) * NPX + p] = (double)g_ncam[o * 3 + k] + (Rwc[k * 3 + 0] * g_nworld[o * 3] + Rwc[k * 3 + 1] * g_nworld[o * 3 + 1] + Rwc[k * 3 + 2] * g_nworld[o * 3 + 2]);
                     tab[PX_W * NPX + p] = gd * aux_W[o];
@@ -55,7 +58,7 @@ extern "C" void backward(const int64_t *tile_start, const int64_t *slot_of_entry
                 if (rec_count[j] == 0) { memset(slots + slot_of_entry[j] * ss, 0, ss * sizeof(double)); continue; }
                 const double *e = ent + j * es;
                 float li = (float)(j - start);
-                vf gax0 = {}, gax1 = {}, gax2 = {}, gay0 = {}, gay1 = {}, gay2 = {}, g00 = {}, g01 = {}, g02 = {};
+                vf gay0 = {}, gay1 = {}, gay2 = {}, g00 = {}, g01 = {}, g02 = {};
                 vf gdet = {}, gcx = {}, gcy = {}, gtw2 = {}, gop = {}, gn0 = {}, gn1 = {}, gn2 = {};
                 vf gfe[MAXC];
                 float fs[MAXC];
@@ -88,7 +91,7 @@ extern "C" void backward(const int64_t *tile_start, const int64_t *slot_of_entry
                     vf w = a * T;
                     vf mm = mscale * (1.0f - near * iz);
                     vf gq0 = ROW(PX_GN), gq1 = ROW(PX_GN1), gq2 = ROW(PX_GN2), gDp = ROW(PX_GD), gdW = ROW(PX_W), gdM1 = ROW(PX_M1);
-                    vf vsum = ROW(PX_GA) + gDp * z + gq0 * n0 + gq1 * n1 + gq2 * n2;
+                    vf vsum = ROW(PX_GA) + gDp * (z - ROW(PX_DEXP)) + gq0 * n0 + gq1 * n1 + gq2 * n2;
                     vsum += mm * mm * gdW - 2.0f * mm * gdM1 + ROW(PX_M2);
                     for (int c = 0; c < C; c++) {
                         vf gf = ROW(PX_FEAT + c);
@@ -107,20 +110,21 @@ extern "C" void backward(const int64_t *tile_start, const int64_t *slot_of_entry
                     vf dq0 = 2.0f * drho * u * inv, dq1 = 2.0f * drho * v * inv;
                     vf dq2 = -(2.0f * drho * (u * u + v * v) + dz * z) * inv;
                     dq0 = use3 ? dq0 : 0.0f; dq1 = use3 ? dq1 : 0.0f; dq2 = use3 ? dq2 : 0.0f;
-                    gax0 += x * dq0; gax1 += x * dq1; gax2 += x * dq2;
-                    gay0 += y * dq0; gay1 += y * dq1; gay2 += y * dq2;
+                    gay0 += (y - cy) * dq0; gay1 += (y - cy) * dq1; gay2 += (y - cy) * dq2;
                     g00 += dq0; g01 += dq1; g02 += dq2;
                     gdet += use3 ? dz * inv : 0.0f;
                     vi lp = m & ~use3;
-                    gcx += lp ? -4.0f * (x - cx) * drho : 0.0f;
+                    gcx += lp ? drho : 0.0f;
                     gcy += lp ? -4.0f * (y - cy) * drho : 0.0f;
                     gtw2 += lp ? dz : 0.0f;
                 }
                 double *sl = slots + slot_of_entry[j] * ss;
-                sl[S_AX] = hsum(gax0); sl[S_AX + 1] = hsum(gax1); sl[S_AX + 2] = hsum(gax2);
-                sl[S_AY] = hsum(gay0); sl[S_AY + 1] = hsum(gay1); sl[S_AY + 2] = hsum(gay2);
-                sl[S_A0] = hsum(g00); sl[S_A0 + 1] = hsum(g01); sl[S_A0 + 2] = hsum(g02);
-                sl[S_DET] = hsum(gdet); sl[S_CX] = hsum(gcx); sl[S_CY] = hsum(gcy); sl[S_TW2] = hsum(gtw2);
+                double s0 = hsum(g00), s1 = hsum(g01), s2 = hsum(g02);
+                // Pixel offsets from the centre keep these sums well conditioned in float32.
+                sl[S_AX] = hsum((x - cx) * g00) + (double)cx * s0; sl[S_AX + 1] = hsum((x - cx) * g01) + (double)cx * s1; sl[S_AX + 2] = hsum((x - cx) * g02) + (double)cx * s2;
+                sl[S_AY] = hsum(gay0) + (double)cy * s0; sl[S_AY + 1] = hsum(gay1) + (double)cy * s1; sl[S_AY + 2] = hsum(gay2) + (double)cy * s2;
+                sl[S_A0] = s0; sl[S_A0 + 1] = s1; sl[S_A0 + 2] = s2;
+                sl[S_DET] = hsum(gdet); sl[S_CX] = hsum(-4.0f * (x - cx) * gcx); sl[S_CY] = hsum(gcy); sl[S_TW2] = hsum(gtw2);
                 sl[S_OPACITY] = hsum(gop);
                 sl[S_NORMAL] = hsum(gn0); sl[S_NORMAL + 1] = hsum(gn1); sl[S_NORMAL + 2] = hsum(gn2);
                 for (int c = 0; c < C; c++) sl[S_FEATURE + c] = hsum(gfe[c]);

@@ -27,6 +27,8 @@ ent[:, K.GEO_RHO_MAX] = np.minimum(ent[:, K.GEO_RHO_MAX], RHO)
 rng = np.random.default_rng(1)
 cots = [rng.standard_normal((H, W, C)).astype(dtype)] + [rng.standard_normal((H, W)).astype(dtype) for _ in range(3)]
 cots += [rng.standard_normal((H, W, 3)).astype(dtype) for _ in range(2)] + [rng.standard_normal((H, W)).astype(dtype)]
+for i in os.environ.get('ZERO', '').split(','):
+    if i: cots[int(i)][:] = 0
 
 def alloc(soa):
     maps = [np.zeros((H, W, C), dtype)] + [np.zeros((H, W), dtype) for _ in range(3)]
@@ -71,3 +73,41 @@ for k, v in ts.items():
     print(k, "median %.4f min %.4f" % (np.median(v), np.min(v)))
 print("numba fwd+bwd %.4f, C fwd+bwd %.4f, ratio %.2f" % (np.median(ts["nb_fwd"]) + np.median(ts["nb_bwd"]),
       np.median(ts["c_fwd"]) + np.median(ts["c_bwd"]), (np.median(ts["c_fwd"]) + np.median(ts["c_bwd"])) / (np.median(ts["nb_fwd"]) + np.median(ts["nb_bwd"]))))
+if os.environ.get("CHECK") == "1":
+    bad_tiles = set()
+    ts_ = g.tile_start
+    mism = np.flatnonzero(bn["rc"] != bc["rc"])
+    tile_of = np.searchsorted(ts_, np.arange(n_pairs), side="right") - 1
+    bad = np.isin(tile_of, np.unique(tile_of[mism]))
+    sl = g.slot_of_entry
+    d = np.abs(sn[sl[~bad]] - sc[sl[~bad]]).max(axis=0) / np.maximum(scale, 1e-300)
+    print("tiles with a flipped record:", len(np.unique(tile_of[mism])), "slots elsewhere, rel diff per column:", np.array2string(d, precision=2))
+if os.environ.get("CHECK") == "1":
+    col = int(os.environ.get("COL", "2"))
+    good = np.flatnonzero(~bad)
+    dd = np.abs(sn[sl[good], col] - sc[sl[good], col])
+    for k in np.argsort(dd)[::-1][:5]:
+        j = good[k]
+        print("entry", j, "recs", bn["rc"][j], "numba", sn[sl[j], col], "C", sc[sl[j], col], "colmax", scale[col],
+              "rho_max", ent[j, K.GEO_RHO_MAX], "box", ent[j, K.E_BOX:K.E_BOX+4], "o", ent[j, K.GEO_OPACITY])
+        r0, rn = bn["rs"][j], bn["rc"][j]
+        print("   use3 frac", ((bn["rec"][r0:r0+rn, 0].astype(int) & 256) > 0).mean(), "T", bn["rec"][r0:r0+rn, 1].min(), "a", bn["rec"][r0:r0+rn, 2].max())
+if os.environ.get("CHECK") == "1" and M32:
+    flips = 0; checked = 0
+    for k in np.argsort(dd)[::-1][:200]:
+        j = good[k]
+        rm = bc["rmask"][j * 48:(j + 1) * 48].reshape(16, 3)
+        cu = []
+        for ry in range(16):
+            for l in range(16):
+                if rm[ry, 0] >> l & 1:
+                    cu.append(rm[ry, 1] >> l & 1)
+        r0, rn = bn["rs"][j], bn["rc"][j]
+        nu = ((bn["rec"][r0:r0 + rn, 0].astype(int) & 256) > 0).astype(int)
+        checked += 1
+        flips += int(len(cu) != len(nu) or np.any(np.array(cu) != nu))
+    print(f"of the {checked} worst entries, {flips} have a use3 flip")
+if os.environ.get("CHECK") == "1":
+    rel = np.abs(sn[sl[good]] - sc[sl[good]]) / np.maximum(scale, 1e-300)
+    for q in (50, 99, 99.9, 99.99, 100):
+        print(f"pct {q}: max over columns {np.percentile(rel, q, axis=0).max():.2e}")

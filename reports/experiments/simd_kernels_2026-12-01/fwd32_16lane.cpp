@@ -65,9 +65,9 @@ extern "C" void forward(const int64_t *tile_start, const int64_t *worker_start, 
 #pragma omp parallel for schedule(static, 1) num_threads(n_workers)
     for (int64_t wk = 0; wk < n_workers; wk++) {
         float Tr[TILE * TILE] __attribute__((aligned(64)));
-        float Ws[TILE * TILE] __attribute__((aligned(64)));
-        float M1[TILE * TILE] __attribute__((aligned(64)));
-        float M2[TILE * TILE] __attribute__((aligned(64)));
+        double Ws[TILE * TILE] __attribute__((aligned(64)));
+        double M1[TILE * TILE] __attribute__((aligned(64)));
+        double M2[TILE * TILE] __attribute__((aligned(64)));
         float D[TILE * TILE] __attribute__((aligned(64)));
         float med[TILE * TILE] __attribute__((aligned(64)));
         float F[MAXC][TILE * TILE] __attribute__((aligned(64)));
@@ -147,9 +147,18 @@ extern "C" void forward(const int64_t *tile_start, const int64_t *worker_start, 
                         *(v8d *)(Nn[2] + p) += w * n2;
                         *(v8d *)(D + p) += w * z;
                         v8d mm = (float)mscale * (1.0f - (float)near * iz);
-                        *(v8d *)(Ws + p) += w;
-                        *(v8d *)(M1 + p) += w * mm;
-                        *(v8d *)(M2 + p) += w * mm * mm;
+                        {
+                            // The moments in float64: the distortion W M2 - M1^2 cancels.
+                            __m512d wl = _mm512_cvtps_pd(_mm512_castps512_ps256((__m512)w));
+                            __m512d wh = _mm512_cvtps_pd(_mm512_extractf32x8_ps((__m512)w, 1));
+                            __m512d ml = _mm512_cvtps_pd(_mm512_castps512_ps256((__m512)mm));
+                            __m512d mh = _mm512_cvtps_pd(_mm512_extractf32x8_ps((__m512)mm, 1));
+                            __m512d *W0 = (__m512d *)(Ws + p), *A0 = (__m512d *)(M1 + p), *B0 = (__m512d *)(M2 + p);
+                            __m512d wml = _mm512_mul_pd(wl, ml), wmh = _mm512_mul_pd(wh, mh);
+                            W0[0] = _mm512_add_pd(W0[0], wl); W0[1] = _mm512_add_pd(W0[1], wh);
+                            A0[0] = _mm512_add_pd(A0[0], wml); A0[1] = _mm512_add_pd(A0[1], wmh);
+                            B0[0] = _mm512_fmadd_pd(wml, ml, B0[0]); B0[1] = _mm512_fmadd_pd(wmh, mh, B0[1]);
+                        }
                         v8l md = m & (T > 0.5f);
                         *(v8d *)(med + p) = sel(md, z, *(v8d *)(med + p));
                         *(v8l *)(medi + p) = md ? (int32_t)(j - start) : *(v8l *)(medi + p);
