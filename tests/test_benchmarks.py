@@ -50,17 +50,27 @@ def test_bench_raster(tmp_path, monkeypatch):
     monkeypatch.setattr(rasterizer, "QUICK", [(64, 48, 400)])
     assert cli.main(["bench-raster", "--quick", "--repeats", "1", "--out-dir", str(tmp_path)]) == 0
     recs = read_report(tmp_path / "rasterizer_quick.json")
-    assert {r["backend"] for r in recs} == {"cpu", "reference"}
+    assert {r["backend"] for r in recs} == {"cpu", "simd", "reference"}
+    md = (tmp_path / "rasterizer_quick.md").read_text()
+    simd_ok = rasterizer.simd.available()[0]
     for r in recs:
+        if r["backend"] == "simd" and not simd_ok:
+            assert "skipped" in r
+            continue
         assert r["forward_s"] > 0 and r["backward_s"] > 0 and r["peak_mb"] is not None
-    assert "| 64x48 | 400 |" in (tmp_path / "rasterizer_quick.md").read_text()
-    (cpu,) = [r for r in recs if r["backend"] == "cpu"]
-    split = cpu["split_s"]
-    assert list(split) == [*rasterizer.KERNEL_PARTS, "rest"]
-    # every kernel ran (own time > 0), and the parts add up to the timed forward + backward
-    assert all(split[k] > 0 for k in rasterizer.KERNEL_PARTS)
-    assert sum(split.values()) == pytest.approx(cpu["forward_s"] + cpu["backward_s"], abs=5e-4)  # 4-decimal rounding
-    assert "## Where the cpu backend's time goes" in (tmp_path / "rasterizer_quick.md").read_text()
+    assert "| 64x48 | 400 |" in md
+    for backend in ("cpu", "simd") if simd_ok else ("cpu",):
+        (rec,) = [r for r in recs if r["backend"] == backend]
+        split = rec["split_s"]
+        assert list(split) == [*rasterizer.KERNEL_PARTS, "rest"]
+        # every part ran (own time > 0), and the parts add up to the timed forward + backward
+        assert all(split[k] > 0 for k in rasterizer.KERNEL_PARTS), backend
+        assert sum(split.values()) == pytest.approx(rec["forward_s"] + rec["backward_s"], abs=5e-4)  # 4-decimal rounding
+    assert "## Where the cpu backend's (and the simd kernels') time goes" in md
+    if simd_ok:
+        (rec,) = [r for r in recs if r["backend"] == "simd"]
+        assert rec["cpu_alternated_total_s"] > 0
+        assert "## The simd kernels against the cpu backend" in md
 
 
 @pytest.fixture(scope="module")

@@ -1,4 +1,4 @@
-"""``gcgs bench-raster``: speed and memory of the cpu and reference backends.
+"""``gcgs bench-raster``: speed and memory of the cpu and reference backends and of the simd kernels.
 
 Scenes: surfels tiling an object's surface seen from DTU camera 23 (``scenes.py``);
 render colour + alpha + expected/median depth + normals + distortion, then back-
@@ -9,6 +9,11 @@ Each cpu case also splits its time by kernel (cProfile's own time of each numba 
 the timed runs, per run): the per-surfel set-up and binning, the forward compositing, the
 backward compositing, the per-surfel reduction, and the rest (the Python wrapper, torch's
 allocations and the cotangents' loss).
+
+The simd kernels (``pipeline.rasterizer.simd``: the cpu backend with its compositing kernels in
+C++, float32) are timed alternated with the cpu backend in the same case, so their ratio is
+taken in one stretch of time on a machine whose speed drifts; skipped, with the reason, where
+they cannot be built.
 
 ``pairs`` is the number of pixel-surfel pairs inside the support boxes (the work the
 scene defines, identical for both backends); ``pairs_per_s = pairs / (forward_s +
@@ -38,6 +43,7 @@ from pipeline.measure import measure
 from pipeline.rasterizer import Surfels, rasterize
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu as cpu_backend
+from pipeline.rasterizer import simd
 from pipeline.benchmarks.surfel_scenes import dtu_camera, object_surfels
 
 SIZES = [(200, 150), (400, 300), (800, 600)]
@@ -46,31 +52,35 @@ QUICK = [(400, 300, 50_000)]
 TARGET_CASE = (400, 300, 50_000)
 TARGET_SECONDS = 0.15
 TARGET_RATIO = 20.0
+ISSUE20_CASE = (800, 600, 200_000)  # the paper's resolution with a full-size surfel cloud
+ISSUE20_SECONDS = 0.15
 MAPS = ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "normal_world", "distortion")
 # Reference memory per evaluated (pixel, surfel) pair in a block, measured on small
 # cases (float32 autograd graph of reference._composite); used to skip cases that
 # would not fit.
 REF_BYTES_PER_PAIR = 150
 REF_BLOCK = 8
-KERNEL_PARTS = {  # part of a render -> the cpu backend's numba kernels it runs
+KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels.py; simd.py's C++ runners)
     "set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles"),
-    "forward compositing": ("gather_entries", "forward"),
-    "backward compositing": ("backward",),
+    "forward compositing": ("gather_entries", "forward", "simd.forward_all"),
+    "backward compositing": ("backward", "simd.backward_all"),
     "per-surfel reduction": ("reduce_and_chain",),
 }
 
 
 def kernel_seconds(stats: pstats.Stats) -> dict[str, float]:
-    """cProfile's own seconds of each numba kernel of the cpu backend (``_kernels.py``)."""
+    """cProfile's own seconds of each kernel (``_kernels.py``'s numba kernels, ``simd.py``'s runners)."""
     out = {f: 0.0 for funcs in KERNEL_PARTS.values() for f in funcs}
     for (path, _line, name), (_cc, _nc, own, _cum, _callers) in stats.stats.items():
-        if path.replace(os.sep, "/").endswith("rasterizer/_kernels.py") and name in out:
-            out[name] += own
+        path = path.replace(os.sep, "/")
+        key = name if path.endswith("rasterizer/_kernels.py") else f"simd.{name}" if path.endswith("rasterizer/simd.py") else None
+        if key in out:
+            out[key] += own
     return out
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--quick", action="store_true", help="only the 400x300 / 50k case, both backends")
+    parser.add_argument("--quick", action="store_true", help="only the 400x300 / 50k case, every backend")
     parser.add_argument("--out-dir", type=Path, default=Path("reports/benchmarks"), help="where to write the reports")
     parser.add_argument("--repeats", type=int, default=5, help="timed runs per cpu case (median reported)")
     parser.add_argument(
@@ -86,7 +96,7 @@ def _time_once(s: Surfels, cam, backend: str, cot: dict) -> tuple[float, float]:
     s = _leaves(s)
     kw = {"reference_block": REF_BLOCK} if backend == "reference" else {}
     t0 = time.perf_counter()
-    out = rasterize(s, cam, backend, **kw)
+    out = simd.rasterize(s, cam) if backend == "simd" else rasterize(s, cam, backend, **kw)
     t1 = time.perf_counter()
     loss = sum((getattr(out, k) * cot[k]).sum() for k in MAPS)
     loss.backward()
@@ -141,6 +151,11 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
     with torch.no_grad():
         shapes = {k: getattr(rasterize(s, cam, "cpu"), k).shape for k in MAPS}
     cot = {k: torch.randn(shapes[k], generator=gen) for k in MAPS}
+    if backend == "simd":
+        ok, why = simd.available()
+        if not ok:
+            rec["skipped"] = f"simd kernels unavailable: {why.splitlines()[0]}"
+            return rec
     if backend == "reference":
         ref_pairs = _reference_pairs(s, cam)
         est_gb = ref_pairs * REF_BYTES_PER_PAIR / 2**30
@@ -155,14 +170,19 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
     with measure() as mem:
         f, b = _time_once(s, cam, backend, cot)
     peak = mem.added_mb if mem.peak_is_own else None  # None: this kernel cannot reset the peak
-    if backend == "cpu":  # the peak run doubles as warm-up; time fresh runs
+    if backend in ("cpu", "simd"):  # the peak run doubles as warm-up; time fresh runs
         profiler = cProfile.Profile()
+        alternated = []
         for _ in range(repeats):
+            if backend == "simd":  # the cpu backend between the runs: a ratio in one stretch of time
+                alternated.append(sum(_time_once(s, cam, "cpu", cot)))
             profiler.enable()
             f, b = _time_once(s, cam, backend, cot)
             profiler.disable()
             fwd.append(f)
             bwd.append(b)
+        if alternated:
+            rec["cpu_alternated_total_s"] = round(statistics.median(alternated), 4)
         own = kernel_seconds(pstats.Stats(profiler))
         split = {part: sum(own[f] for f in funcs) / repeats for part, funcs in KERNEL_PARTS.items()}
         split["rest"] = max((sum(fwd) + sum(bwd)) / repeats - sum(split.values()), 0.0)
@@ -178,7 +198,7 @@ def _bench_case(W: int, H: int, N: int, backend: str, repeats: int, budget_gb: f
         repeats=len(fwd),
         pairs_per_s=round(g.box_pixels / (f_med + b_med)),
         peak_mb=None if peak is None else round(peak, 1),
-        kept_mb=round(
+        kept_mb=None if backend != "cpu" else round(
             (int(g.rec_tile_start[-1]) * K.R_SIZE * s.means.element_size() + g.num_pairs * (K.S_FIXED + 3) * 8
              + g.num_pairs * (K.E_FEAT + 3) * 8 + g.tile_list.nbytes + g.slot_of_entry.nbytes) / 2**20, 1),  # fmt: skip
         load_avg_1min=[round(load_before, 2), round(os.getloadavg()[0], 2)],
@@ -230,7 +250,36 @@ def _markdown(records: list[dict], meta: dict) -> str:
     if c and r and "total_s" in r:
         ratio = r["total_s"] / c["total_s"]
         lines.append(f"- >= {TARGET_RATIO:g}x the reference: **{'met' if ratio >= TARGET_RATIO else 'missed'}** ({ratio:.1f}x)")
-    skipped = [r for r in records if "skipped" in r]
+    simd_recs = [r for r in records if r["backend"] == "simd"]
+    if simd_recs:
+        lines += [
+            "",
+            "## The simd kernels against the cpu backend",
+            "",
+            "The cpu backend with its two compositing kernels in C++ (`pipeline.rasterizer.simd`, float32 "
+            "lanes; docs/rasterizer.md \"The simd kernels\"), each timed run preceded by a cpu run of the same "
+            "case, so the ratio is taken in one stretch of time:",
+            "",
+            "| image | surfels | cpu total s (alternated) | simd fwd s | simd bwd s | simd total s | simd / cpu |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for r in simd_recs:
+            if "skipped" in r:
+                lines.append(f"| {r['width']}x{r['height']} | {r['num_surfels']} | skipped: {r['skipped']} | | | | |")
+                continue
+            ratio = r["total_s"] / r["cpu_alternated_total_s"]
+            lines.append(
+                f"| {r['width']}x{r['height']} | {r['num_surfels']} | {r['cpu_alternated_total_s']} | {r['forward_s']} | "
+                f"{r['backward_s']} | {r['total_s']} | {ratio:.2f} |"
+            )
+        case = by_case.get(ISSUE20_CASE, {})
+        best = [(n, case[n]["total_s"]) for n in ("cpu", "simd") if "total_s" in case.get(n, {})]
+        if best:
+            W, H, N = ISSUE20_CASE
+            name, secs = min(best, key=lambda x: x[1])
+            lines += ["", f"Issue 20's target, {W}x{H} / {N} surfels forward + backward <= {ISSUE20_SECONDS} s: "
+                      f"**{'met' if secs <= ISSUE20_SECONDS else 'missed'}** (best: {name}, {secs} s)."]  # fmt: skip
+    skipped = [r for r in records if "skipped" in r and r["backend"] == "reference"]
     if skipped:
         lines += ["", "Reference cases skipped (would not fit in memory): " + ", ".join(
             f"{r['width']}x{r['height']}/{r['num_surfels']} ({r['skipped']})" for r in skipped)]  # fmt: skip
@@ -239,18 +288,18 @@ def _markdown(records: list[dict], meta: dict) -> str:
         parts = list(split[0]["split_s"])
         lines += [
             "",
-            "## Where the cpu backend's time goes",
+            "## Where the cpu backend's (and the simd kernels') time goes",
             "",
             "Seconds per forward + backward (cProfile's own time of each kernel over the timed runs; rest = the "
             "Python wrapper, allocations and the cotangents' loss), and each part's share of the total:",
             "",
-            "| image | surfels | " + " | ".join(parts) + " |",
-            "|---|---|" + "---|" * len(parts),
+            "| image | surfels | kernels | " + " | ".join(parts) + " |",
+            "|---|---|---|" + "---|" * len(parts),
         ]
         for r in split:
             total = sum(r["split_s"].values()) or 1.0
             cells = [f"{r['split_s'][k]:.4f} ({r['split_s'][k] / total:.0%})" for k in parts]
-            lines.append(f"| {r['width']}x{r['height']} | {r['num_surfels']} | " + " | ".join(cells) + " |")
+            lines.append(f"| {r['width']}x{r['height']} | {r['num_surfels']} | {r['backend']} | " + " | ".join(cells) + " |")
     dev = [r for r in records if "centre_depth_dev_mean" in r]
     if dev:
         lines += [
@@ -290,7 +339,7 @@ def run(args: argparse.Namespace) -> int:
     }
     print(f"cpu kernels ready in {compile_s:.1f} s ({'cache' if meta['from_cache'] else 'compiled'})", flush=True)
     records = []
-    jobs = [(c, b) for c in cases for b in ("cpu", "reference")]
+    jobs = [(c, b) for c in cases for b in ("cpu", "simd", "reference")]
     for i, ((W, H, N), backend) in enumerate(jobs, 1):
         rec = _bench_case(W, H, N, backend, args.repeats, args.reference_budget_gb)
         rec["compile_s"] = round(compile_s, 2)

@@ -1,0 +1,273 @@
+"""The ``simd`` kernels: the ``cpu`` backend with its two compositing kernels in C++.
+
+The per-surfel set-up, the tile binning, the entry gather and the per-surfel chain rule are
+the ``cpu`` backend's numba kernels; the forward and backward compositing (~80% of a render
+at 800x600) are ``_simd.cpp``: a tile row of 16 pixels in one vector of float32 lanes
+(docs/rasterizer.md, "The simd kernels"). Float32 input only; arithmetic is float32 like
+2DGS's CUDA kernels, so results match the ``cpu`` backend to float32 rounding, not bit for
+bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` for the median,
+``rho3 <= rho2``) can fall on the other side.
+
+The source is compiled on first use by the system's C++ compiler (``$CXX``, else ``c++``) for
+the host CPU (``-march=native``) and cached in ``__pycache__`` next to this module, keyed by
+the source, compiler, flags and the CPU's feature flags. :func:`available` says whether it
+built, and why not. Each call renders one worker's tiles; the workers run on Python threads
+(ctypes releases the GIL), so the threads are the ones the ``cpu`` backend's tile schedule
+was made for (``numba.get_num_threads()``), and results do not depend on their number.
+"""
+from __future__ import annotations
+
+import ctypes
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import tempfile
+import threading
+import weakref
+from pathlib import Path
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from pipeline.rasterizer import _kernels as K
+from pipeline.rasterizer import cpu
+from pipeline.rasterizer.project import colors_of
+from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
+
+SOURCE = Path(__file__).with_name("_simd.cpp")
+FLAGS = ("-O3", "-march=native", "-ffp-contract=fast", "-fPIC", "-shared", "-std=c++17")
+MAX_CHANNELS = 8  # MAXC in _simd.cpp
+RMASK_FIELDS = 3  # RM_SIZE in _simd.cpp
+RECORD_SLACK = 16  # the kernel stores 16 lanes at the last record
+
+_P = ctypes.c_void_p
+_I = ctypes.c_int64
+_D = ctypes.c_double
+_FORWARD_ARGS = [_P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 7 + [_P] * 6 + [_P] * 6
+_BACKWARD_ARGS = [_P, _P, _P, _I, _I, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 6 + [_P] * 5 + [_P] * 7 + [_P]
+
+_lock = threading.Lock()
+_state: dict[str, object] = {}
+
+
+class SimdUnavailable(RuntimeError):
+    """The C++ kernels could not be built or loaded here (the message says why)."""
+
+
+def _cpu_flags() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith(("flags", "Features")):
+                return line
+    except OSError:
+        pass
+    return platform.processor()
+
+
+def _compiler() -> str | None:
+    return shutil.which(os.environ.get("CXX", "c++"))
+
+
+def build(compiler: str, flags: tuple[str, ...], out_dir: Path) -> Path:
+    """Compile ``_simd.cpp`` with ``compiler`` and ``flags`` into ``out_dir`` (cached by a
+    hash of the source, the compiler's version, the flags and the CPU), return the library."""
+    version = subprocess.run([compiler, "--version"], capture_output=True, text=True, check=False).stdout
+    key = hashlib.sha256(
+        b"\0".join([SOURCE.read_bytes(), version.encode(), " ".join(flags).encode(), _cpu_flags().encode()])
+    ).hexdigest()[:16]
+    lib = out_dir / f"_simd-{key}.so"
+    if lib.exists():
+        return lib
+    out_dir.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=out_dir, suffix=".so.tmp")
+    os.close(fd)
+    try:
+        res = subprocess.run([compiler, *flags, "-o", tmp, str(SOURCE)], capture_output=True, text=True, check=False)
+        if res.returncode != 0:
+            raise SimdUnavailable(f"{compiler} failed to compile {SOURCE.name}:\n{res.stderr.strip()[-2000:]}")
+        os.replace(tmp, lib)  # atomic: a concurrent process sees the whole library or none
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    for old in out_dir.glob("_simd-*.so"):  # builds of earlier sources (a process using one keeps its mapping)
+        if old != lib:
+            old.unlink(missing_ok=True)
+    return lib
+
+
+def load(lib_path: Path) -> ctypes.CDLL:
+    lib = ctypes.CDLL(str(lib_path))
+    lib.simd_forward.argtypes = _FORWARD_ARGS
+    lib.simd_forward.restype = None
+    lib.simd_backward.argtypes = _BACKWARD_ARGS
+    lib.simd_backward.restype = None
+    lib.simd_exp.argtypes = [_P, _P, _I]
+    lib.simd_exp.restype = None
+    return lib
+
+
+def library() -> ctypes.CDLL:
+    """The compiled kernels (built on first call); raises :class:`SimdUnavailable`."""
+    with _lock:
+        if "lib" in _state:
+            return _state["lib"]  # type: ignore[return-value]
+        if "error" in _state:
+            raise SimdUnavailable(_state["error"])
+        try:
+            compiler = _compiler()
+            if compiler is None:
+                raise SimdUnavailable(f"no C++ compiler ({os.environ.get('CXX', 'c++')!r} not on PATH)")
+            cache = Path(__file__).with_name("__pycache__")
+            try:
+                lib_path = build(compiler, FLAGS, cache)
+            except PermissionError:
+                lib_path = build(compiler, FLAGS, Path(tempfile.gettempdir()) / "gcgs-simd")
+            _state["lib"] = load(lib_path)
+        except (SimdUnavailable, OSError) as err:
+            _state["error"] = str(err)
+            raise SimdUnavailable(str(err)) from None
+        return _state["lib"]  # type: ignore[return-value]
+
+
+def available() -> tuple[bool, str]:
+    """``(True, "")`` when the kernels are built and loaded, else ``(False, why)``."""
+    try:
+        library()
+        return True, ""
+    except SimdUnavailable as err:
+        return False, str(err)
+
+
+def _runners():
+    """numba functions that run the kernels over the workers on numba's own threads (a
+    second thread pool beside numba's spinning OpenMP threads would fight them for the
+    cores); compiled once per process, since they hold the library's function addresses."""
+    with _lock:
+        if "runners" in _state:
+            return _state["runners"]
+    lib = library()
+    fwd, bwd = lib.simd_forward, lib.simd_backward
+
+    @numba.njit(parallel=True)
+    def forward_all(tile_start, worker_start, worker_tiles, ent, C, Rwc, W, H, n_tx, near, far, depth_eps,
+                    m0, m1, m2, m3, m4, m5, m6, a0, a1, a2, a3, a4, med_local, rec_tile_start,
+                    rec_T, rec_A, rmask, rec_start, rec_count):  # fmt: skip
+        for k in numba.prange(worker_start.shape[0] - 1):
+            fwd(tile_start.ctypes, worker_tiles.ctypes, worker_start[k], worker_start[k + 1], ent.ctypes,
+                ent.shape[1], C, Rwc.ctypes, W, H, n_tx, near, far, depth_eps, m0.ctypes, m1.ctypes, m2.ctypes,
+                m3.ctypes, m4.ctypes, m5.ctypes, m6.ctypes, a0.ctypes, a1.ctypes, a2.ctypes, a3.ctypes, a4.ctypes,
+                med_local.ctypes, rec_tile_start.ctypes, rec_T.ctypes, rec_A.ctypes, rmask.ctypes,
+                rec_start.ctypes, rec_count.ctypes)  # fmt: skip
+
+    @numba.njit(parallel=True)
+    def backward_all(tile_start, slot_of_entry, worker_start, worker_tiles, ent, C, Rwc, W, H, n_tx, near, far,
+                     depth_eps, a0, a1, a2, a3, a4, med_local, rec_T, rec_A, rmask, rec_start, rec_count,
+                     g0, g1, g2, g3, g4, g5, g6, slots):  # fmt: skip
+        for k in numba.prange(worker_start.shape[0] - 1):
+            bwd(tile_start.ctypes, slot_of_entry.ctypes, worker_tiles.ctypes, worker_start[k], worker_start[k + 1],
+                ent.ctypes, ent.shape[1], C, Rwc.ctypes, W, H, n_tx, near, far, depth_eps, a0.ctypes, a1.ctypes,
+                a2.ctypes, a3.ctypes, a4.ctypes, med_local.ctypes, rec_T.ctypes, rec_A.ctypes, rmask.ctypes,
+                rec_start.ctypes, rec_count.ctypes, g0.ctypes, g1.ctypes, g2.ctypes, g3.ctypes, g4.ctypes,
+                g5.ctypes, g6.ctypes, slots.ctypes)  # fmt: skip
+
+    with _lock:
+        _state["runners"] = (forward_all, backward_all)
+    return forward_all, backward_all
+
+
+def _ptr(a: np.ndarray) -> int:
+    assert a.flags.c_contiguous, "the kernels read C-contiguous arrays"
+    return a.ctypes.data
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: cpu.Geometry, camera: Camera, depth_eps: float):
+        H, W = camera.height, camera.width
+        C = colors.shape[1]
+        feat = cpu._np(colors)
+        _, Rwc, _ = cpu._camera_arrays(camera)
+        Rwc = np.ascontiguousarray(Rwc, np.float64)
+        f32 = np.float32
+        maps = [np.empty((H, W, C), f32)] + [np.empty((H, W), f32) for _ in range(3)]
+        maps += [np.empty((H, W, 3), f32), np.empty((H, W, 3), f32), np.empty((H, W), f32)]
+        n_rec, n_pairs = int(geom.rec_tile_start[-1]), geom.num_pairs
+        specs = [((H, W), np.float64)] * 5 + [((H, W), np.int32)]
+        specs += [((n_rec + RECORD_SLACK,), f32)] * 2 + [((n_pairs * K.TILE * RMASK_FIELDS,), np.uint16)]
+        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((n_pairs, K.E_FEAT + C), np.float64)]
+        scratch = cpu.SCRATCH.take("simd-forward", cpu._carve_bytes(specs))
+        weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
+        *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, ent = cpu._carve(scratch, specs)
+        K.gather_entries(geom.tile_list, geom.geo, geom.Tm, geom.nrm, geom.box, feat, ent)
+        forward_all, _ = _runners()
+        forward_all(
+            geom.tile_start, geom.worker_start, geom.worker_tiles, ent, C, Rwc, W, H, geom.n_tx, camera.near,
+            camera.far, depth_eps, *maps, *aux, med_local, geom.rec_tile_start, rec_T, rec_A, rmask, rec_start, rec_count,
+        )  # fmt: skip
+        ctx.state = (geom, camera, depth_eps, feat, aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, ent, Rwc)
+        ctx.save_for_backward(means, quats, scales)
+        return tuple(torch.from_numpy(a) for a in maps)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        geom, camera, depth_eps, feat, aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, ent, Rwc = ctx.state
+        means, quats, scales = ctx.saved_tensors
+        P, C = feat.shape
+        Kc, _, _ = cpu._camera_arrays(camera)
+        slot_spec = [((geom.num_pairs, K.S_FIXED + C), np.float64)]
+        slot_buf = cpu.SCRATCH.take("backward", cpu._carve_bytes(slot_spec))
+        (slots,) = cpu._carve(slot_buf, slot_spec)
+        g = [np.ascontiguousarray(cpu._np(t), np.float32) for t in grads]
+        _, backward_all = _runners()
+        backward_all(
+            geom.tile_start, geom.slot_of_entry, geom.worker_start, geom.worker_tiles, ent, C, Rwc, camera.width,
+            camera.height, geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec_T, rec_A, rmask,
+            rec_start, rec_count, *g, slots,
+        )  # fmt: skip
+        f32 = np.float32
+        out = [np.zeros((P, 3), f32), np.zeros((P, 4), f32), np.zeros((P, 2), f32), np.zeros(P, f32)]
+        out += [np.zeros((P, C), f32), np.zeros((P, 2), f32)]
+        K.reduce_and_chain(
+            geom.emit_start, slots, cpu._np(quats), cpu._np(scales), cpu._np(means), geom.Tm, geom.nrm, Kc, Rwc, *out
+        )
+        cpu.SCRATCH.give("backward", slot_buf)
+        return tuple(torch.from_numpy(a) for a in out) + (None, None, None)
+
+
+def render(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera, depth_eps: float
+) -> tuple[list[Tensor], Tensor, Tensor, cpu.Geometry]:
+    """:func:`cpu.render` with the C++ compositing kernels; float32 tensors, at most
+    :data:`MAX_CHANNELS` feature channels. Raises :class:`SimdUnavailable` if they cannot
+    be built, ``ValueError`` on other input."""
+    if means.dtype != torch.float32 or colors.dtype != torch.float32:
+        raise ValueError(f"the simd kernels take float32 surfels, got {means.dtype} / {colors.dtype} (use the cpu backend)")
+    if colors.shape[1] > MAX_CHANNELS:
+        raise ValueError(f"the simd kernels take at most {MAX_CHANNELS} feature channels, got {colors.shape[1]}")
+    library()
+    geom = cpu.prepare(means, quats, scales, opacities, camera)
+    centre = geom.geo[:, K.GEO_CX : K.GEO_CY + 1].astype(np.float32)
+    means2d = torch.from_numpy(centre).requires_grad_(torch.is_grad_enabled())
+    maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps)
+    return list(maps), torch.from_numpy(geom.radii), means2d, geom
+
+
+def exp(x: np.ndarray) -> np.ndarray:
+    """The kernels' float32 ``exp`` on ``x`` (for its test against ``np.exp``)."""
+    x = np.ascontiguousarray(x, np.float32)
+    out = np.empty_like(x)
+    library().simd_exp(_ptr(x), _ptr(out), x.size)
+    return out
+
+
+def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float = 1e-6) -> RenderOutput:
+    """:func:`pipeline.rasterizer.rasterize` with ``backend="cpu"``, on the simd kernels."""
+    maps, radii, means2d, _ = render(
+        surfels.means, surfels.quats, surfels.scales, surfels.opacities, colors_of(surfels, camera), camera, depth_eps
+    )
+    return RenderOutput(*maps, radii=radii, means2d=means2d)
