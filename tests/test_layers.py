@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1] / "src" / "pipeline"
 LAYERS = [
     {"errors", "npz", "measure", "losses", "mvphoto"},
     {"config", "geometry", "atomic", "onnx_models", "rasterizer"},
-    {"ply"},
+    {"ply", "rasterizer_simd"},
     {"data"},
     {"init", "priors"},
     {"optimize"},

@@ -1,4 +1,4 @@
-"""The simd kernels (``pipeline.rasterizer.simd``, C++): against the float64 reference and
+"""The simd kernels (``pipeline.rasterizer_simd``, C++): against the float64 reference and
 the cpu backend, thread-count determinism, the portable build, their exp, bad input and a
 missing compiler."""
 from __future__ import annotations
@@ -13,7 +13,8 @@ import torch
 from raster_helpers import MAPS, PARAMS, random_camera, random_surfels, with_grad
 
 from pipeline.benchmarks.surfel_scenes import dtu_camera, object_surfels
-from pipeline.rasterizer import Camera, Surfels, rasterize, simd
+from pipeline import rasterizer_simd as simd
+from pipeline.rasterizer import Camera, Surfels, rasterize
 
 pytestmark = pytest.mark.skipif(shutil.which("c++") is None, reason="no C++ compiler on PATH")
 

@@ -10,7 +10,7 @@ the timed runs, per run): the per-surfel set-up and binning, the forward composi
 backward compositing, the per-surfel reduction, and the rest (the Python wrapper, torch's
 allocations and the cotangents' loss).
 
-The simd kernels (``pipeline.rasterizer.simd``: the cpu backend with its compositing kernels in
+The simd kernels (``pipeline.rasterizer_simd``: the cpu backend with its compositing kernels in
 C++, float32) are timed alternated with the cpu backend in the same case, so their ratio is
 taken in one stretch of time on a machine whose speed drifts; skipped, with the reason, where
 they cannot be built.
@@ -43,7 +43,7 @@ from pipeline.measure import measure
 from pipeline.rasterizer import Surfels, rasterize
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu as cpu_backend
-from pipeline.rasterizer import simd
+from pipeline import rasterizer_simd as simd
 from pipeline.benchmarks.surfel_scenes import dtu_camera, object_surfels
 
 SIZES = [(200, 150), (400, 300), (800, 600)]
@@ -69,11 +69,11 @@ KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels
 
 
 def kernel_seconds(stats: pstats.Stats) -> dict[str, float]:
-    """cProfile's own seconds of each kernel (``_kernels.py``'s numba kernels, ``simd.py``'s runners)."""
+    """cProfile's own seconds of each kernel (numba kernels of ``rasterizer/_kernels.py``, the C++ runners of ``rasterizer_simd``)."""
     out = {f: 0.0 for funcs in KERNEL_PARTS.values() for f in funcs}
     for (path, _line, name), (_cc, _nc, own, _cum, _callers) in stats.stats.items():
         path = path.replace(os.sep, "/")
-        key = name if path.endswith("rasterizer/_kernels.py") else f"simd.{name}" if path.endswith("rasterizer/simd.py") else None
+        key = name if path.endswith("rasterizer/_kernels.py") else f"simd.{name}" if path.endswith("rasterizer_simd/__init__.py") else None
         if key in out:
             out[key] += own
     return out
@@ -256,7 +256,7 @@ def _markdown(records: list[dict], meta: dict) -> str:
             "",
             "## The simd kernels against the cpu backend",
             "",
-            "The cpu backend with its two compositing kernels in C++ (`pipeline.rasterizer.simd`, float32 "
+            "The cpu backend with its two compositing kernels in C++ (`pipeline.rasterizer_simd`, float32 "
             "lanes; docs/rasterizer.md \"The simd kernels\"), each timed run preceded by a cpu run of the same "
             "case, so the ratio is taken in one stretch of time:",
             "",

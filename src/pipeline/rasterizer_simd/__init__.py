@@ -1,4 +1,9 @@
-"""The ``simd`` kernels: the ``cpu`` backend with its two compositing kernels in C++.
+"""The ``simd`` kernels: the ``cpu`` backend of :mod:`pipeline.rasterizer` with its two
+compositing kernels in C++.
+
+A package of its own, above the rasterizer, until training uses it: every training stage
+depends on the whole ``src/pipeline/rasterizer`` folder, so a file added there is a full
+repro (``dvc.yaml``).
 
 The per-surfel set-up, the tile binning, the entry gather and the per-surfel chain rule are
 the ``cpu`` backend's numba kernels; the forward and backward compositing (~80% of a render
@@ -198,7 +203,8 @@ class _Rasterize(torch.autograd.Function):
         n_rec, n_pairs = int(geom.rec_tile_start[-1]), geom.num_pairs
         specs = [((H, W), np.float64)] * 5 + [((H, W), np.int32)]
         specs += [((n_rec + RECORD_SLACK,), f32)] * 2 + [((n_pairs * K.TILE * RMASK_FIELDS,), np.uint16)]
-        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((n_pairs, K.E_FEAT + C), np.float64)]
+        # The entries in float32: the kernels compute in float32 and read each value once per pass.
+        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((n_pairs, K.E_FEAT + C), f32)]
         scratch = cpu.SCRATCH.take("simd-forward", cpu._carve_bytes(specs))
         weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
         *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, ent = cpu._carve(scratch, specs)

@@ -153,7 +153,7 @@ extern "C" {
 
 // The forward of ``_kernels.forward`` for the tiles ``worker_tiles[it0:it1]``; records as two
 // planes (transmittance before the pair, alpha) plus ``rmask`` (n_entries x TILE x RM_SIZE).
-void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_t it0, int64_t it1, const double *ent,
+void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_t it0, int64_t it1, const float *ent,
                   int64_t ent_cols, int64_t C, const double *Rwc, int64_t width, int64_t height, int64_t n_tx,
                   double near, double far, double depth_eps, float *out_feat, float *out_alpha, float *out_depth,
                   float *out_med, float *out_ncam, float *out_nworld, float *out_dist, double *aux_T, double *aux_D,
@@ -187,7 +187,7 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
         for (int64_t j = start; j < end; j++) {
             if (n_done == npx) break;
             rec_start[j] = r;
-            const double *e = ent + j * ent_cols;
+            const float *e = ent + j * ent_cols;
             const float ax0 = e[GEO_AX], ax1 = e[GEO_AX + 1], ax2 = e[GEO_AX + 2];
             const float ay0 = e[GEO_AY], ay1 = e[GEO_AY + 1], ay2 = e[GEO_AY + 2];
             const float a00 = e[GEO_A0], a01 = e[GEO_A0 + 1], a02 = e[GEO_A0 + 2];
@@ -293,7 +293,7 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
 // ``simd_forward``'s records: per entry (in reverse list order) and tile row, the pairs'
 // gradients in lanes, summed per entry into its slot.
 void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, const int64_t *worker_tiles, int64_t it0,
-                   int64_t it1, const double *ent, int64_t ent_cols, int64_t C, const double *Rwc, int64_t width,
+                   int64_t it1, const float *ent, int64_t ent_cols, int64_t C, const double *Rwc, int64_t width,
                    int64_t height, int64_t n_tx, double near, double far, double depth_eps, const double *aux_T,
                    const double *aux_D, const double *aux_W, const double *aux_M1, const double *aux_M2,
                    const int32_t *med_local, const float *rec_T, const float *rec_A, const uint16_t *rmask,
@@ -335,14 +335,14 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
                 memset(sl, 0, slot_cols * sizeof(double));
                 continue;
             }
-            const double *e = ent + j * ent_cols;
+            const float *e = ent + j * ent_cols;
             const float li = (float)(j - start);
             const float cx = e[GEO_CX], cy = e[GEO_CY];
             const float ax0 = e[GEO_AX], ax1 = e[GEO_AX + 1], ax2 = e[GEO_AX + 2];
             const float ay0 = e[GEO_AY], ay1 = e[GEO_AY + 1], ay2 = e[GEO_AY + 2];
             const float a00 = e[GEO_A0], a01 = e[GEO_A0 + 1], a02 = e[GEO_A0 + 2];
             const float det = e[GEO_DET], inv_det = e[GEO_INV_DET], zc = e[E_ZC], inv_zc = e[GEO_INV_ZC];
-            const float inv_o = (float)(1.0 / e[GEO_OPACITY]);
+            const float inv_o = (float)(1.0 / (double)e[GEO_OPACITY]);
             const float n0 = e[E_NRM], n1 = e[E_NRM + 1], n2 = e[E_NRM + 2];
             float fs[MAXC];
             for (int c = 0; c < C; c++) fs[c] = e[E_FEAT + c];
