@@ -16,9 +16,9 @@ bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` fo
 The source is compiled on first use by the system's C++ compiler (``$CXX``, else ``c++``) for
 the host CPU (``-march=native``) and cached in ``__pycache__`` next to this module, keyed by
 the source, compiler, flags and the CPU's feature flags. :func:`available` says whether it
-built, and why not. Each call renders one worker's tiles; the workers run on Python threads
-(ctypes releases the GIL), so the threads are the ones the ``cpu`` backend's tile schedule
-was made for (``numba.get_num_threads()``), and results do not depend on their number.
+built, and why not. Each C++ call renders one worker's tiles of the ``cpu`` backend's tile
+schedule (made for ``numba.get_num_threads()`` workers), called from a numba ``prange`` so that
+numba's OpenMP threads run them; results do not depend on the number of threads.
 """
 from __future__ import annotations
 
