@@ -60,7 +60,7 @@ MAPS = ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "no
 # would not fit.
 REF_BYTES_PER_PAIR = 150
 REF_BLOCK = 8
-KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels.py; simd.py's C++ runners)
+KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels.py; rasterizer_simd's C++ runners)
     "set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles"),
     "forward compositing": ("gather_entries", "forward", "simd.forward_all"),
     "backward compositing": ("backward", "simd.backward_all"),

@@ -189,6 +189,8 @@ def _ptr(a: np.ndarray) -> int:
     return a.ctypes.data
 
 
+# Mirrors cpu._Rasterize but for the records' layout and the compositing calls; the two become
+# one when these kernels move into rasterizer/ (an edit there is a full repro).
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: cpu.Geometry, camera: Camera, depth_eps: float):
@@ -228,7 +230,7 @@ class _Rasterize(torch.autograd.Function):
         slot_spec = [((geom.num_pairs, K.S_FIXED + C), np.float64)]
         slot_buf = cpu.SCRATCH.take("backward", cpu._carve_bytes(slot_spec))
         (slots,) = cpu._carve(slot_buf, slot_spec)
-        g = [np.ascontiguousarray(cpu._np(t), np.float32) for t in grads]
+        g = [cpu._np(t) for t in grads]  # float32, as the maps
         _, backward_all = _runners()
         backward_all(
             geom.tile_start, geom.slot_of_entry, geom.worker_start, geom.worker_tiles, ent, C, Rwc, camera.width,

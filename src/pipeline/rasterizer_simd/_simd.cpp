@@ -308,7 +308,9 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
         const int64_t t = worker_tiles[it];
         const Tile tb = tile_bounds(t, n_tx, width, height);
         memset(B, 0, sizeof B);
-        memset(tab, 0, sizeof tab);
+        // A full tile writes every pixel's table row below; an edge tile's lanes past the image
+        // are read too (masked out, but they must be finite).
+        if (tb.x1 - tb.x0 < TILE || tb.y1 - tb.y0 < TILE) memset(tab, 0, sizeof tab);
         for (int64_t py = tb.y0; py < tb.y1; py++)
             for (int64_t px = tb.x0; px < tb.x1; px++) {
                 const int64_t p = (py - tb.y0) * TILE + px - tb.x0, o = py * width + px;
