@@ -83,6 +83,46 @@ def test_simd_matches_cpu_on_a_dense_object():
         assert (err > 1e-3).double().mean() <= 1e-3, k
 
 
+def _depth_cases():
+    rng = np.random.default_rng(7)
+    n = 5000
+    spread = rng.uniform(1.0, 900.0, n)  # distinct depths
+    ties = rng.choice([3.0, 4.5, 600.25], n)  # long runs of equal depths
+    # depths closer than float32's spacing: the radix keys tie, the float64 order must not
+    f32_twins = 600.0 + rng.integers(0, 40, n) * 1e-9 + rng.integers(0, 3, n) * 1e-4
+    reversed_twins = 600.0 + np.arange(n)[::-1] * 1e-12  # one long key run, ids against depths
+    base = rng.uniform(1.0, 900.0, n // 2)
+    pairs = rng.permutation(np.concatenate([base, base + base * 1e-9]))  # short key runs
+    return [spread, ties, f32_twins, reversed_twins, pairs, np.zeros(0)]
+
+
+@pytest.mark.parametrize("case", range(6))
+def test_depth_order_is_the_cpu_backends(case):
+    """The radix sort against ``cpu.depth_order`` (numpy's sort, then ties by id), some
+    surfels not drawn."""
+    from pipeline.rasterizer import cpu
+
+    depth = _depth_cases()[case]
+    radii = np.random.default_rng(case).integers(0, 3, depth.shape[0]).astype(np.int32)
+    got = simd.depth_order(depth, radii)
+    assert got.dtype == np.int64
+    np.testing.assert_array_equal(got, cpu.depth_order(depth, radii))
+
+
+def test_prepare_bins_as_the_cpu_backend():
+    from pipeline.rasterizer import cpu
+
+    cam, n2w = dtu_camera(200, 150)
+    s = object_surfels(5_000, n2w, seed=0)
+    a = simd.prepare(s.means, s.quats, s.scales, s.opacities, cam)
+    b = cpu.prepare(s.means, s.quats, s.scales, s.opacities, cam)
+    for k in ("tile_start", "tile_list", "emit_start", "slot_of_entry", "rec_tile_start", "box", "radii", "geo"):
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    cost = np.diff(a.rec_tile_start) + cpu._ENTRY_COST * np.diff(a.tile_start)
+    assert sorted(a.worker_tiles.tolist()) == list(range(cost.shape[0])), "every tile once"
+    assert (np.diff(cost[a.worker_tiles]) <= 0).all(), "largest first"
+
+
 def test_same_input_same_output_any_thread_count():
     cam = random_camera(70, 50, 4)
     s = random_surfels(800, cam, 3, 4, torch.float32)

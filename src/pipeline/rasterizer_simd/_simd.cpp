@@ -8,9 +8,10 @@
 // 2DGS's and gsplat's CUDA kernels, except the moments W, M1, M2 (float64: the distortion
 // W M2 - M1^2 cancels) and the per-entry gradient sums (reduced across lanes into float64).
 //
-// Each call renders the tiles of one worker (worker_tiles[it0:it1]); the caller runs one call
-// per thread. Within a tile the work is sequential in list order, so results do not depend on
-// the number of threads. GCC / Clang vector extensions; AVX-512 for masks, compress and expand
+// Each call renders tiles of ``tile_order`` (largest first) until none is left, taking the next
+// from a counter shared by the calls; the caller runs one call per thread. A tile is rendered
+// by one call, sequentially in list order, so results do not depend on which thread renders it
+// or on the number of threads. GCC / Clang vector extensions; AVX-512 for masks, compress and expand
 // where the compiler targets it, a lane loop otherwise.
 #include <stdint.h>
 #include <string.h>
@@ -32,6 +33,7 @@ enum { PX_GA = 0, PX_GD, PX_GN0, PX_GN1, PX_GN2, PX_W, PX_M1, PX_M2, PX_GMED, PX
 // intersection branch (use3) and of those whose alpha is capped.
 enum { RM_PAIR = 0, RM_USE3 = 1, RM_CAP = 2, RM_SIZE = 3 };
 
+constexpr int PREFETCH = 4;  // entries ahead in the backward
 constexpr float ALPHA_MIN = 1.0f / 255.0f, ALPHA_MAX = 0.99f, T_MIN = 1e-4f, UV_MAX = 1e6f;
 
 typedef float vf __attribute__((vector_size(64)));
@@ -147,14 +149,14 @@ inline Tile tile_bounds(int64_t t, int64_t n_tx, int64_t width, int64_t height) 
     return {x0, y0, x0 + TILE < width ? x0 + TILE : width, y0 + TILE < height ? y0 + TILE : height};
 }
 
-}  // namespace
-
-extern "C" {
-
-// The forward of ``_kernels.forward`` for the tiles ``worker_tiles[it0:it1]``; records as two
-// planes (transmittance before the pair, alpha) plus ``rmask`` (n_entries x TILE x RM_SIZE).
-void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_t it0, int64_t it1, const float *ent,
-                  int64_t ent_cols, int64_t C, const double *Rwc, int64_t width, int64_t height, int64_t n_tx,
+// The forward of ``_kernels.forward`` for the tiles it takes from ``tile_order``; records as two
+// planes (transmittance before the pair, alpha) plus ``rmask`` (n_entries x TILE x RM_SIZE; an
+// entry's rows outside its box are left unwritten, and the backward reads only its box rows).
+// The channel count is a template parameter: with it known, the features and their gradient
+// sums stay in registers instead of a stack array zeroed and copied per entry.
+template <int C>
+void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t n_tiles, int64_t *next_tile, const int32_t *tile_list,
+                  const float *surf, int64_t surf_cols, const double *Rwc, int64_t width, int64_t height, int64_t n_tx,
                   double near, double far, double depth_eps, float *out_feat, float *out_alpha, float *out_depth,
                   float *out_med, float *out_ncam, float *out_nworld, float *out_dist, double *aux_T, double *aux_D,
                   double *aux_W, double *aux_M1, double *aux_M2, int32_t *med_local, const int64_t *rec_tile_start,
@@ -163,8 +165,8 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
     alignas(64) float Tr[NPX], D[NPX], med[NPX], F[MAXC][NPX], Nn[3][NPX];
     alignas(64) double Ws[NPX], M1[NPX], M2[NPX];
     alignas(64) int32_t medi[NPX], done[NPX];
-    for (int64_t it = it0; it < it1; it++) {
-        const int64_t t = worker_tiles[it];
+    for (int64_t it; (it = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+        const int64_t t = tile_order[it];
         const Tile tb = tile_bounds(t, n_tx, width, height);
         const int64_t npx = (tb.x1 - tb.x0) * (tb.y1 - tb.y0);
         for (int i = 0; i < NPX; i++) {
@@ -182,12 +184,16 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
             rec_start[j] = r;
             rec_count[j] = 0;
         }
-        memset(rmask + start * TILE * RM_SIZE, 0, (end - start) * TILE * RM_SIZE * sizeof(uint16_t));
         const vf x = LANE + (float)tb.x0;
         for (int64_t j = start; j < end; j++) {
             if (n_done == npx) break;
             rec_start[j] = r;
-            const float *e = ent + j * ent_cols;
+            const float *e = surf + (int64_t)tile_list[j] * surf_cols;
+            if (j + PREFETCH < end) {
+                const char *ek = (const char *)(surf + (int64_t)tile_list[j + PREFETCH] * surf_cols);
+                __builtin_prefetch(ek);
+                __builtin_prefetch(ek + 64);
+            }
             const float ax0 = e[GEO_AX], ax1 = e[GEO_AX + 1], ax2 = e[GEO_AX + 2];
             const float ay0 = e[GEO_AY], ay1 = e[GEO_AY + 1], ay2 = e[GEO_AY + 2];
             const float a00 = e[GEO_A0], a01 = e[GEO_A0 + 1], a02 = e[GEO_A0 + 2];
@@ -205,6 +211,8 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
                 const float y = (float)py, dy = y - cy, dy2 = dy * dy;
                 const float qr0 = y * ay0 + a00, qr1 = y * ay1 + a01, qr2 = y * ay2 + a02;
                 const int64_t row = (py - tb.y0) * TILE;
+                uint16_t *rm = rmask + (j * TILE + (py - tb.y0)) * RM_SIZE;
+                rm[RM_PAIR] = rm[RM_USE3] = rm[RM_CAP] = 0;
                 const vi dn = *(const vi *)(done + row);
                 vi m = in_box & ~dn;
                 const vf q0 = x * ax0 + qr0, q1 = x * ax1 + qr1, q2 = x * ax2 + qr2;
@@ -257,7 +265,6 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
                 compress_store(rec_T + r, mb, T);
                 compress_store(rec_A + r, mb, a);
                 r += __builtin_popcount(mb);
-                uint16_t *rm = rmask + (j * TILE + (py - tb.y0)) * RM_SIZE;
                 rm[RM_PAIR] = (uint16_t)mb;
                 rm[RM_USE3] = (uint16_t)(bits(use3) & mb);
                 rm[RM_CAP] = (uint16_t)(bits(a_raw >= ALPHA_MAX) & mb);
@@ -289,11 +296,12 @@ void simd_forward(const int64_t *tile_start, const int64_t *worker_tiles, int64_
     }
 }
 
-// The backward of ``_kernels.backward`` for the tiles ``worker_tiles[it0:it1]``, from
+// The backward of ``_kernels.backward`` for the tiles it takes from ``tile_order``, from
 // ``simd_forward``'s records: per entry (in reverse list order) and tile row, the pairs'
 // gradients in lanes, summed per entry into its slot.
-void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, const int64_t *worker_tiles, int64_t it0,
-                   int64_t it1, const float *ent, int64_t ent_cols, int64_t C, const double *Rwc, int64_t width,
+template <int C>
+void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, const int64_t *tile_order, int64_t n_tiles,
+                   int64_t *next_tile, const int32_t *tile_list, const float *surf, int64_t surf_cols, const double *Rwc, int64_t width,
                    int64_t height, int64_t n_tx, double near, double far, double depth_eps, const double *aux_T,
                    const double *aux_D, const double *aux_W, const double *aux_M1, const double *aux_M2,
                    const int32_t *med_local, const float *rec_T, const float *rec_A, const uint16_t *rmask,
@@ -304,8 +312,8 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
     const int64_t slot_cols = S_FEATURE + C;
     alignas(64) float tab[(PX_FEAT + MAXC) * NPX];
     alignas(64) float B[NPX];
-    for (int64_t it = it0; it < it1; it++) {
-        const int64_t t = worker_tiles[it];
+    for (int64_t it; (it = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
+        const int64_t t = tile_order[it];
         const Tile tb = tile_bounds(t, n_tx, width, height);
         memset(B, 0, sizeof B);
         // A full tile writes every pixel's table row below; an edge tile's lanes past the image
@@ -332,12 +340,25 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
         const int64_t start = tile_start[t];
         const vf x = LANE + (float)tb.x0;
         for (int64_t j = tile_start[t + 1] - 1; j >= start; j--) {
+            // The entries are read in the reverse of the order the forward wrote them, which
+            // the hardware prefetcher does not follow: fetch an entry's data a few entries ahead.
+            if (j - PREFETCH >= start) {
+                const int64_t k = j - PREFETCH;
+                const char *ek = (const char *)(surf + (int64_t)tile_list[k] * surf_cols), *mk = (const char *)(rmask + k * TILE * RM_SIZE);
+                __builtin_prefetch(ek);
+                __builtin_prefetch(ek + 64);
+                __builtin_prefetch(mk);
+                __builtin_prefetch(mk + 64);
+                __builtin_prefetch(rec_T + rec_start[k]);
+                __builtin_prefetch(rec_A + rec_start[k]);
+                __builtin_prefetch(slots + slot_of_entry[k] * slot_cols, 1);
+            }
             double *sl = slots + slot_of_entry[j] * slot_cols;
             if (rec_count[j] == 0) {
                 memset(sl, 0, slot_cols * sizeof(double));
                 continue;
             }
-            const float *e = ent + j * ent_cols;
+            const float *e = surf + (int64_t)tile_list[j] * surf_cols;
             const float li = (float)(j - start);
             const float cx = e[GEO_CX], cy = e[GEO_CY];
             const float ax0 = e[GEO_AX], ax1 = e[GEO_AX + 1], ax2 = e[GEO_AX + 2];
@@ -354,8 +375,10 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
             vf gdet = {}, gdrho_lp = {}, gcy = {}, gtw2 = {}, gop = {}, gn0 = {}, gn1 = {}, gn2 = {};
             vf gfe[MAXC];
             for (int c = 0; c < C; c++) gfe[c] = (vf){};
+            const int64_t by0 = (int64_t)e[E_BOX + 2], by1 = (int64_t)e[E_BOX + 3];
+            const int64_t ry0 = (by0 > tb.y0 ? by0 : tb.y0) - tb.y0, ry1 = (by1 < tb.y1 - 1 ? by1 : tb.y1 - 1) - tb.y0;
             int64_t r = rec_start[j];
-            for (int64_t ry = 0; ry < TILE; ry++) {
+            for (int64_t ry = ry0; ry <= ry1; ry++) {
                 const uint16_t *rm = rmask + (j * TILE + ry) * RM_SIZE;
                 const uint32_t mb = rm[RM_PAIR];
                 if (!mb) continue;
@@ -432,6 +455,50 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
             sl[S_NORMAL + 2] = hsum(gn2);
             for (int c = 0; c < C; c++) sl[S_FEATURE + c] = hsum(gfe[c]);
         }
+    }
+}
+
+}  // namespace
+
+extern "C" {
+
+#define CHANNELS(F) F(1) F(2) F(3) F(4) F(5) F(6) F(7) F(8)
+
+void simd_forward(const int64_t *tile_start, const int64_t *tile_order, int64_t n_tiles, int64_t *next_tile, const int32_t *tile_list,
+                  const float *surf, int64_t surf_cols, int64_t C, const double *Rwc, int64_t width, int64_t height, int64_t n_tx,
+                  double near, double far, double depth_eps, float *out_feat, float *out_alpha, float *out_depth,
+                  float *out_med, float *out_ncam, float *out_nworld, float *out_dist, double *aux_T, double *aux_D,
+                  double *aux_W, double *aux_M1, double *aux_M2, int32_t *med_local, const int64_t *rec_tile_start,
+                  float *rec_T, float *rec_A, uint16_t *rmask, int64_t *rec_start, int64_t *rec_count) {
+    switch (C) {
+#define CASE(c)                                                                                                     \
+    case c:                                                                                                         \
+        return forward_tiles<c>(tile_start, tile_order, n_tiles, next_tile, tile_list, surf, surf_cols, Rwc, width, height, n_tx, near, \
+                                far, depth_eps, out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld,     \
+                                out_dist, aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec_tile_start, rec_T,   \
+                                rec_A, rmask, rec_start, rec_count);
+        CHANNELS(CASE)
+#undef CASE
+    }
+}
+
+void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, const int64_t *tile_order, int64_t n_tiles,
+                   int64_t *next_tile, const int32_t *tile_list, const float *surf, int64_t surf_cols, int64_t C, const double *Rwc, int64_t width,
+                   int64_t height, int64_t n_tx, double near, double far, double depth_eps, const double *aux_T,
+                   const double *aux_D, const double *aux_W, const double *aux_M1, const double *aux_M2,
+                   const int32_t *med_local, const float *rec_T, const float *rec_A, const uint16_t *rmask,
+                   const int64_t *rec_start, const int64_t *rec_count, const float *g_feat, const float *g_alpha,
+                   const float *g_depth, const float *g_med, const float *g_ncam, const float *g_nworld,
+                   const float *g_dist, double *slots) {
+    switch (C) {
+#define CASE(c)                                                                                                      \
+    case c:                                                                                                          \
+        return backward_tiles<c>(tile_start, slot_of_entry, tile_order, n_tiles, next_tile, tile_list, surf, surf_cols, Rwc, width,       \
+                                 height, n_tx, near, far, depth_eps, aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, \
+                                 rec_T, rec_A, rmask, rec_start, rec_count, g_feat, g_alpha, g_depth, g_med, g_ncam, \
+                                 g_nworld, g_dist, slots);
+        CHANNELS(CASE)
+#undef CASE
     }
 }
 
