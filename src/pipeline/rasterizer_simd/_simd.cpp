@@ -15,6 +15,8 @@
 // where the compiler targets it, a lane loop otherwise.
 #include <stdint.h>
 #include <string.h>
+
+#include <type_traits>
 #if defined(__AVX512F__)
 #include <immintrin.h>
 #endif
@@ -39,13 +41,33 @@ constexpr float ALPHA_MIN = 1.0f / 255.0f, ALPHA_MAX = 0.99f, T_MIN = 1e-4f, UV_
 typedef float vf __attribute__((vector_size(64)));
 typedef int32_t vi __attribute__((vector_size(64)));
 typedef double vd __attribute__((vector_size(64)));
+// Half a tile row: an entry whose box lies in one 8-pixel half of the tile (69% of the box rows
+// at 800x600 / 200k surfels) is evaluated on 8 lanes, half the work on CPUs that split 512-bit
+// operations. The operations per lane are the same, but the compiler may fuse multiply-adds
+// differently at the two widths (with -ffp-contract=off the results are bitwise those of 16
+// lanes), so they can differ in the last bits; the width depends only on the entry's box.
+typedef float vf8 __attribute__((vector_size(32)));
+typedef int32_t vi8 __attribute__((vector_size(32)));
 
-const vf LANE = {0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15};
+template <int L> struct Lanes;
+template <> struct Lanes<16> {
+    typedef vf F;
+    typedef vi I;
+};
+template <> struct Lanes<8> {
+    typedef vf8 F;
+    typedef vi8 I;
+};
+template <int L> using Width = std::integral_constant<int, L>;
 
-inline vf splat(float a) { return (vf){} + a; }
-inline vf vmax(vf a, vf b) { return a > b ? a : b; }
-inline vf vmin(vf a, vf b) { return a < b ? a : b; }
-inline vf vabs(vf a) { return a < 0 ? -a : a; }
+template <int L> inline typename Lanes<L>::F lane_index();
+template <> inline vf lane_index<16>() { return (vf){0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15}; }
+template <> inline vf8 lane_index<8>() { return (vf8){0, 1, 2, 3, 4, 5, 6, 7}; }
+
+template <class F> inline F splat(float a) { return (F){} + a; }
+template <class F> inline F vmax(F a, F b) { return a > b ? a : b; }
+template <class F> inline F vmin(F a, F b) { return a < b ? a : b; }
+template <class F> inline F vabs(F a) { return a < 0 ? -a : a; }
 
 inline uint32_t bits(vi m) {
 #if defined(__AVX512F__)
@@ -57,12 +79,31 @@ inline uint32_t bits(vi m) {
 #endif
 }
 
-inline vi lanes_of(uint32_t b) {
+inline uint32_t bits(vi8 m) {
+#if defined(__AVX512VL__)
+    return _mm256_test_epi32_mask((__m256i)m, (__m256i)m);
+#else
+    uint32_t b = 0;
+    for (int l = 0; l < 8; l++) b |= (m[l] != 0 ? 1u : 0u) << l;
+    return b;
+#endif
+}
+
+template <int L> inline typename Lanes<L>::I lanes_of(uint32_t b);
+template <> inline vi lanes_of<16>(uint32_t b) {
 #if defined(__AVX512F__) && defined(__AVX512DQ__)
     return (vi)_mm512_movm_epi32((__mmask16)b);
 #else
     const vi bit = {1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384, 32768};
     return ((vi){} + (int32_t)b & bit) != 0;
+#endif
+}
+template <> inline vi8 lanes_of<8>(uint32_t b) {
+#if defined(__AVX512VL__) && defined(__AVX512DQ__)
+    return (vi8)_mm256_movm_epi32((__mmask8)b);
+#else
+    const vi8 bit = {1, 2, 4, 8, 16, 32, 64, 128};
+    return ((vi8){} + (int32_t)b & bit) != 0;
 #endif
 }
 
@@ -91,8 +132,19 @@ inline void compress_store(float *dst, uint32_t b, vf v) {
 #endif
 }
 
+inline void compress_store(float *dst, uint32_t b, vf8 v) {
+#if defined(__AVX512VL__)
+    _mm256_storeu_ps(dst, _mm256_maskz_compress_ps((__mmask8)b, (__m256)v));
+#else
+    int k = 0;
+    for (int l = 0; l < 8; l++)
+        if (b >> l & 1) dst[k++] = v[l];
+#endif
+}
+
 // The inverse: consecutive floats at ``src`` into the lanes selected by ``b``, 0 elsewhere.
-inline vf expand_load(const float *src, uint32_t b) {
+template <int L> inline typename Lanes<L>::F expand_load(const float *src, uint32_t b);
+template <> inline vf expand_load<16>(const float *src, uint32_t b) {
 #if defined(__AVX512F__)
     return (vf)_mm512_maskz_expand_ps((__mmask16)b, _mm512_loadu_ps(src));
 #else
@@ -103,12 +155,20 @@ inline vf expand_load(const float *src, uint32_t b) {
     return v;
 #endif
 }
+template <> inline vf8 expand_load<8>(const float *src, uint32_t b) {
+#if defined(__AVX512VL__)
+    return (vf8)_mm256_maskz_expand_ps((__mmask8)b, _mm256_loadu_ps(src));
+#else
+    vf8 v = {};
+    int k = 0;
+    for (int l = 0; l < 8; l++)
+        if (b >> l & 1) v[l] = src[k++];
+    return v;
+#endif
+}
 
-// Sum of the 16 lanes in float64, in a fixed order.
-inline double hsum(vf a) {
-    vd lo, hi;
-    widen(a, lo, hi);
-    const vd s8 = lo + hi;
+// Sum of 8 doubles in a fixed order.
+inline double hsum8(vd s8) {
 #if defined(__AVX512F__)
     const __m256d s4 = _mm256_add_pd(_mm512_castpd512_pd256((__m512d)s8), _mm512_extractf64x4_pd((__m512d)s8, 1));
     const __m128d s2 = _mm_add_pd(_mm256_castpd256_pd128(s4), _mm256_extractf128_pd(s4, 1));
@@ -120,22 +180,33 @@ inline double hsum(vf a) {
 #endif
 }
 
+// Sum of the lanes in float64, in a fixed order: the two halves added first, so that 8 lanes
+// give what 16 give when the other half is zero.
+inline double hsum(vf a) {
+    vd lo, hi;
+    widen(a, lo, hi);
+    return hsum8(lo + hi);
+}
+inline double hsum(vf8 a) { return hsum8(__builtin_convertvector(a, vd)); }
+
 // exp(x) for x <= 0 in float32: x = k ln2 + r, |r| <= ln2 / 2, Cephes' degree-7 polynomial, 2^k
 // through the exponent bits; within 2 ulp of expf on [-87, 0] (tested).
-inline vf vexp(vf x) {
+template <int L> inline typename Lanes<L>::F vexp(typename Lanes<L>::F x) {
+    typedef typename Lanes<L>::F F;
+    typedef typename Lanes<L>::I I;
     const float LOG2E = 1.44269504f, LN2_HI = 0.693359375f, LN2_LO = -2.12194440e-4f, RND = 12582912.0f;
-    x = vmax(x, splat(-87.0f));
-    vf k = (x * LOG2E + RND) - RND;  // round to nearest
-    vf r = x - k * LN2_HI - k * LN2_LO;
-    vf p = splat(1.9875691500e-4f);
+    x = vmax(x, splat<F>(-87.0f));
+    F k = (x * LOG2E + RND) - RND;  // round to nearest
+    F r = x - k * LN2_HI - k * LN2_LO;
+    F p = splat<F>(1.9875691500e-4f);
     p = p * r + 1.3981999507e-3f;
     p = p * r + 8.3334519073e-3f;
     p = p * r + 4.1665795894e-2f;
     p = p * r + 1.6666665459e-1f;
     p = p * r + 5.0000001201e-1f;
     p = p * r * r + r + 1.0f;
-    vi e = (__builtin_convertvector(k, vi) + 127) << 23;
-    vf scale;
+    I e = (__builtin_convertvector(k, I) + 127) << 23;
+    F scale;
     memcpy(&scale, &e, sizeof scale);
     return p * scale;
 }
@@ -162,7 +233,7 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                   double *aux_W, double *aux_M1, double *aux_M2, int32_t *med_local, const int64_t *rec_tile_start,
                   float *rec_T, float *rec_A, uint16_t *rmask, int64_t *rec_start, int64_t *rec_count) {
     const float mscale = (float)(far / (far - near)), nearf = (float)near;
-    alignas(64) float Tr[NPX], D[NPX], med[NPX], F[MAXC][NPX], Nn[3][NPX];
+    alignas(64) float Tr[NPX], D[NPX], med[NPX], Fe[MAXC][NPX], Nn[3][NPX];
     alignas(64) double Ws[NPX], M1[NPX], M2[NPX];
     alignas(64) int32_t medi[NPX], done[NPX];
     for (int64_t it; (it = __atomic_fetch_add(next_tile, 1, __ATOMIC_RELAXED)) < n_tiles;) {
@@ -173,7 +244,7 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
             Tr[i] = 1.0f;
             D[i] = med[i] = 0.0f;
             Ws[i] = M1[i] = M2[i] = 0.0;
-            for (int c = 0; c < C; c++) F[c][i] = 0.0f;
+            for (int c = 0; c < C; c++) Fe[c][i] = 0.0f;
             Nn[0][i] = Nn[1][i] = Nn[2][i] = 0.0f;
             medi[i] = -1;
             done[i] = 0;
@@ -184,7 +255,6 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
             rec_start[j] = r;
             rec_count[j] = 0;
         }
-        const vf x = LANE + (float)tb.x0;
         for (int64_t j = start; j < end; j++) {
             if (n_done == npx) break;
             rec_start[j] = r;
@@ -204,77 +274,98 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
             for (int c = 0; c < C; c++) fs[c] = e[E_FEAT + c];
             const int64_t bx0 = (int64_t)e[E_BOX], bx1 = (int64_t)e[E_BOX + 1];
             const int64_t by0 = (int64_t)e[E_BOX + 2], by1 = (int64_t)e[E_BOX + 3];
-            const float xa = (float)(bx0 > tb.x0 ? bx0 : tb.x0), xb = (float)(bx1 < tb.x1 - 1 ? bx1 : tb.x1 - 1);
+            const int64_t xa = bx0 > tb.x0 ? bx0 : tb.x0, xb = bx1 < tb.x1 - 1 ? bx1 : tb.x1 - 1;
             const int64_t ya = by0 > tb.y0 ? by0 : tb.y0, yb = by1 < tb.y1 - 1 ? by1 : tb.y1 - 1;
-            const vi in_box = (x >= xa) & (x <= xb);
-            for (int64_t py = ya; py <= yb; py++) {
-                const float y = (float)py, dy = y - cy, dy2 = dy * dy;
-                const float qr0 = y * ay0 + a00, qr1 = y * ay1 + a01, qr2 = y * ay2 + a02;
-                const int64_t row = (py - tb.y0) * TILE;
-                uint16_t *rm = rmask + (j * TILE + (py - tb.y0)) * RM_SIZE;
-                rm[RM_PAIR] = rm[RM_USE3] = rm[RM_CAP] = 0;
-                const vi dn = *(const vi *)(done + row);
-                vi m = in_box & ~dn;
-                const vf q0 = x * ax0 + qr0, q1 = x * ax1 + qr1, q2 = x * ax2 + qr2;
-                const vf dx = x - cx;
-                const vf rho2 = 2.0f * (dx * dx + dy2);
-                const vi in3 = (vabs(q2) * UV_MAX > vmax(vabs(q0), vabs(q1))) & (q0 * q0 + q1 * q1 <= rho_max * (q2 * q2));
-                m &= in3 | (rho2 <= rho_max);
-                if (!bits(m)) continue;
-                const vf inv = in3 ? 1.0f / (in3 ? q2 : 1.0f) : 0.0f;
-                const vf u = q0 * inv, v = q1 * inv, r3 = u * u + v * v;
-                const vi use3 = in3 & (r3 <= rho2);
-                const vf rho = use3 ? r3 : rho2;
-                const vf z = use3 ? det * inv : zc;
-                const vf iz = use3 ? q2 * inv_det : inv_zc;
-                m &= (rho <= rho_max) & (z >= nearf);
-                if (!bits(m)) continue;
-                const vf a_raw = o * vexp(-0.5f * vmin(rho, splat(170.0f)));
-                const vf a = vmin(splat(ALPHA_MAX), a_raw);
-                m &= a >= ALPHA_MIN;
-                const vf T = *(const vf *)(Tr + row);
-                const vf Tn = T * (1.0f - a);
-                const vi stop = m & (Tn < T_MIN);
-                if (uint32_t sb = bits(stop)) {
-                    *(vi *)(done + row) = dn | stop;
-                    n_done += __builtin_popcount(sb);
-                    m &= ~stop;
+            // The entry's rows on L lanes starting at tile column ``off``.
+            auto rows = [&](auto width, int64_t off) {
+                constexpr int L = decltype(width)::value;
+                typedef typename Lanes<L>::F F;
+                typedef typename Lanes<L>::I I;
+                const F x = lane_index<L>() + (float)(tb.x0 + off);
+                const I in_box = (x >= (float)xa) & (x <= (float)xb);
+                for (int64_t py = ya; py <= yb; py++) {
+                    const float y = (float)py, dy = y - cy, dy2 = dy * dy;
+                    const float qr0 = y * ay0 + a00, qr1 = y * ay1 + a01, qr2 = y * ay2 + a02;
+                    const int64_t row = (py - tb.y0) * TILE + off;
+                    uint16_t *rm = rmask + (j * TILE + (py - tb.y0)) * RM_SIZE;
+                    rm[RM_PAIR] = rm[RM_USE3] = rm[RM_CAP] = 0;
+                    const I dn = *(const I *)(done + row);
+                    I m = in_box & ~dn;
+                    const F q0 = x * ax0 + qr0, q1 = x * ax1 + qr1, q2 = x * ax2 + qr2;
+                    const F dx = x - cx;
+                    const F rho2 = 2.0f * (dx * dx + dy2);
+                    const I in3 = (vabs(q2) * UV_MAX > vmax(vabs(q0), vabs(q1))) & (q0 * q0 + q1 * q1 <= rho_max * (q2 * q2));
+                    m &= in3 | (rho2 <= rho_max);
+                    if (!bits(m)) continue;
+                    const F inv = in3 ? 1.0f / (in3 ? q2 : 1.0f) : 0.0f;
+                    const F u = q0 * inv, v = q1 * inv, r3 = u * u + v * v;
+                    const I use3 = in3 & (r3 <= rho2);
+                    const F rho = use3 ? r3 : rho2;
+                    const F z = use3 ? det * inv : zc;
+                    const F iz = use3 ? q2 * inv_det : inv_zc;
+                    m &= (rho <= rho_max) & (z >= nearf);
+                    if (!bits(m)) continue;
+                    const F a_raw = o * vexp<L>(-0.5f * vmin(rho, splat<F>(170.0f)));
+                    const F a = vmin(splat<F>(ALPHA_MAX), a_raw);
+                    m &= a >= ALPHA_MIN;
+                    const F T = *(const F *)(Tr + row);
+                    const F Tn = T * (1.0f - a);
+                    const I stop = m & (Tn < T_MIN);
+                    if (uint32_t sb = bits(stop)) {
+                        *(I *)(done + row) = dn | stop;
+                        n_done += __builtin_popcount(sb);
+                        m &= ~stop;
+                    }
+                    const uint32_t mb = bits(m);
+                    if (!mb) continue;
+                    const F w = m ? a * T : 0.0f;
+                    for (int c = 0; c < C; c++) *(F *)(Fe[c] + row) += w * fs[c];
+                    *(F *)(Nn[0] + row) += w * n0;
+                    *(F *)(Nn[1] + row) += w * n1;
+                    *(F *)(Nn[2] + row) += w * n2;
+                    *(F *)(D + row) += w * z;
+                    const F mm = mscale * (1.0f - nearf * iz);
+                    if constexpr (L == 16) {
+                        vd wl[2], ml[2];
+                        widen(w, wl[0], wl[1]);
+                        widen(mm, ml[0], ml[1]);
+                        for (int h = 0; h < 2; h++) {
+                            const vd wm = wl[h] * ml[h];
+                            *(vd *)(Ws + row + 8 * h) += wl[h];
+                            *(vd *)(M1 + row + 8 * h) += wm;
+                            *(vd *)(M2 + row + 8 * h) += wm * ml[h];
+                        }
+                    } else {
+                        const vd wl = __builtin_convertvector(w, vd), ml = __builtin_convertvector(mm, vd);
+                        const vd wm = wl * ml;
+                        *(vd *)(Ws + row) += wl;
+                        *(vd *)(M1 + row) += wm;
+                        *(vd *)(M2 + row) += wm * ml;
+                    }
+                    const I md = m & (T > 0.5f);
+                    *(F *)(med + row) = md ? z : *(const F *)(med + row);
+                    *(I *)(medi + row) = md ? (int32_t)(j - start) : *(const I *)(medi + row);
+                    *(F *)(Tr + row) = m ? Tn : T;
+                    compress_store(rec_T + r, mb, T);
+                    compress_store(rec_A + r, mb, a);
+                    r += __builtin_popcount(mb);
+                    rm[RM_PAIR] = (uint16_t)(mb << off);
+                    rm[RM_USE3] = (uint16_t)((bits(use3) & mb) << off);
+                    rm[RM_CAP] = (uint16_t)((bits(a_raw >= ALPHA_MAX) & mb) << off);
                 }
-                const uint32_t mb = bits(m);
-                if (!mb) continue;
-                const vf w = m ? a * T : 0.0f;
-                for (int c = 0; c < C; c++) *(vf *)(F[c] + row) += w * fs[c];
-                *(vf *)(Nn[0] + row) += w * n0;
-                *(vf *)(Nn[1] + row) += w * n1;
-                *(vf *)(Nn[2] + row) += w * n2;
-                *(vf *)(D + row) += w * z;
-                const vf mm = mscale * (1.0f - nearf * iz);
-                vd wl[2], ml[2];
-                widen(w, wl[0], wl[1]);
-                widen(mm, ml[0], ml[1]);
-                for (int h = 0; h < 2; h++) {
-                    const vd wm = wl[h] * ml[h];
-                    *(vd *)(Ws + row + 8 * h) += wl[h];
-                    *(vd *)(M1 + row + 8 * h) += wm;
-                    *(vd *)(M2 + row + 8 * h) += wm * ml[h];
-                }
-                const vi md = m & (T > 0.5f);
-                *(vf *)(med + row) = md ? z : *(const vf *)(med + row);
-                *(vi *)(medi + row) = md ? (int32_t)(j - start) : *(const vi *)(medi + row);
-                *(vf *)(Tr + row) = m ? Tn : T;
-                compress_store(rec_T + r, mb, T);
-                compress_store(rec_A + r, mb, a);
-                r += __builtin_popcount(mb);
-                rm[RM_PAIR] = (uint16_t)mb;
-                rm[RM_USE3] = (uint16_t)(bits(use3) & mb);
-                rm[RM_CAP] = (uint16_t)(bits(a_raw >= ALPHA_MAX) & mb);
-            }
+            };
+            if (xb - tb.x0 < 8)
+                rows(Width<8>{}, 0);
+            else if (xa - tb.x0 >= 8)
+                rows(Width<8>{}, 8);
+            else
+                rows(Width<16>{}, 0);
             rec_count[j] = r - rec_start[j];
         }
         for (int64_t py = tb.y0; py < tb.y1; py++)
             for (int64_t px = tb.x0; px < tb.x1; px++) {
                 const int64_t p = (py - tb.y0) * TILE + px - tb.x0, o = py * width + px;
-                for (int c = 0; c < C; c++) out_feat[o * C + c] = F[c][p];
+                for (int c = 0; c < C; c++) out_feat[o * C + c] = Fe[c][p];
                 for (int k = 0; k < 3; k++) {
                     out_ncam[o * 3 + k] = Nn[k][p];
                     // n_world = R_wc^T n_cam
@@ -338,7 +429,6 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
                 for (int c = 0; c < C; c++) tab[(PX_FEAT + c) * NPX + p] = g_feat[o * C + c];
             }
         const int64_t start = tile_start[t];
-        const vf x = LANE + (float)tb.x0;
         for (int64_t j = tile_start[t + 1] - 1; j >= start; j--) {
             // The entries are read in the reverse of the order the forward wrote them, which
             // the hardware prefetcher does not follow: fetch an entry's data a few entries ahead.
@@ -369,91 +459,108 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
             const float n0 = e[E_NRM], n1 = e[E_NRM + 1], n2 = e[E_NRM + 2];
             float fs[MAXC];
             for (int c = 0; c < C; c++) fs[c] = e[E_FEAT + c];
-            // Per-lane sums over the entry's pairs; the pixel-weighted ones about the centre
-            // (x - cx, y - cy), which keeps them well conditioned in float32.
-            vf g0 = {}, g1 = {}, g2 = {}, gy0 = {}, gy1 = {}, gy2 = {};
-            vf gdet = {}, gdrho_lp = {}, gcy = {}, gtw2 = {}, gop = {}, gn0 = {}, gn1 = {}, gn2 = {};
-            vf gfe[MAXC];
-            for (int c = 0; c < C; c++) gfe[c] = (vf){};
+            const int64_t bx0 = (int64_t)e[E_BOX], bx1 = (int64_t)e[E_BOX + 1];
             const int64_t by0 = (int64_t)e[E_BOX + 2], by1 = (int64_t)e[E_BOX + 3];
+            const int64_t xa = bx0 > tb.x0 ? bx0 : tb.x0, xb = bx1 < tb.x1 - 1 ? bx1 : tb.x1 - 1;
             const int64_t ry0 = (by0 > tb.y0 ? by0 : tb.y0) - tb.y0, ry1 = (by1 < tb.y1 - 1 ? by1 : tb.y1 - 1) - tb.y0;
-            int64_t r = rec_start[j];
-            for (int64_t ry = ry0; ry <= ry1; ry++) {
-                const uint16_t *rm = rmask + (j * TILE + ry) * RM_SIZE;
-                const uint32_t mb = rm[RM_PAIR];
-                if (!mb) continue;
-                const vi m = lanes_of(mb), use3 = lanes_of(rm[RM_USE3]), lowpass = m & ~use3;
-                const vi uncapped = m & ~lanes_of(rm[RM_CAP]);
-                const vf T = expand_load(rec_T + r, mb), a = expand_load(rec_A + r, mb);
-                r += __builtin_popcount(mb);
-                const int64_t row = ry * TILE;
-                const float y = (float)(tb.y0 + ry);
-                const vf q0 = x * ax0 + (y * ay0 + a00), q1 = x * ax1 + (y * ay1 + a01), q2 = x * ax2 + (y * ay2 + a02);
-                const vf inv = use3 ? 1.0f / (use3 ? q2 : 1.0f) : 0.0f;
-                const vf u = q0 * inv, v = q1 * inv;
-                const vf z = use3 ? det * inv : zc;
-                const vf iz = use3 ? q2 * inv_det : inv_zc;
-                const vf w = a * T;
-                const vf mm = mscale * (1.0f - nearf * iz);
-#define ROW(f) (*(const vf *)(tab + (f) * NPX + row))
-                const vf gq0 = ROW(PX_GN0), gq1 = ROW(PX_GN1), gq2 = ROW(PX_GN2);
-                const vf gDp = ROW(PX_GD), gdW = ROW(PX_W), gdM1 = ROW(PX_M1);
-                vf vsum = ROW(PX_GA) + gDp * (z - ROW(PX_DEXP)) + gq0 * n0 + gq1 * n1 + gq2 * n2;
-                vsum += mm * mm * gdW - 2.0f * mm * gdM1 + ROW(PX_M2);
-                for (int c = 0; c < C; c++) {
-                    const vf gf = ROW(PX_FEAT + c);
-                    vsum += gf * fs[c];
-                    gfe[c] += gf * w;
-                }
-                gn0 += gq0 * w;
-                gn1 += gq1 * w;
-                gn2 += gq2 * w;
-                const vf Bp = *(const vf *)(B + row);
-                const vf dL_da = T * (vsum - Bp);
-                *(vf *)(B + row) = m ? a * vsum + (1.0f - a) * Bp : Bp;
-                vf dz = gDp * w + 2.0f * w * (mm * gdW - gdM1) * mscale * nearf * iz * iz;
-                dz += (ROW(PX_MED) == li) ? ROW(PX_GMED) : 0.0f;
-                dz = m ? dz : 0.0f;
+            // The entry's pairs on L lanes starting at tile column ``off`` (as the forward chose).
+            auto pairs = [&](auto width, int64_t off) {
+                constexpr int L = decltype(width)::value;
+                typedef typename Lanes<L>::F F;
+                typedef typename Lanes<L>::I I;
+                const uint32_t lane_bits = (1u << L) - 1;
+                const F x = lane_index<L>() + (float)(tb.x0 + off);
+                // Per-lane sums over the entry's pairs; the pixel-weighted ones about the centre
+                // (x - cx, y - cy), which keeps them well conditioned in float32.
+                F g0 = {}, g1 = {}, g2 = {}, gy0 = {}, gy1 = {}, gy2 = {};
+                F gdet = {}, gdrho_lp = {}, gcy = {}, gtw2 = {}, gop = {}, gn0 = {}, gn1 = {}, gn2 = {};
+                F gfe[C];
+                for (int c = 0; c < C; c++) gfe[c] = (F){};
+                int64_t r = rec_start[j];
+                for (int64_t ry = ry0; ry <= ry1; ry++) {
+                    const uint16_t *rm = rmask + (j * TILE + ry) * RM_SIZE;
+                    const uint32_t mb = (uint32_t)rm[RM_PAIR] >> off & lane_bits;
+                    if (!mb) continue;
+                    const I m = lanes_of<L>(mb), use3 = lanes_of<L>((uint32_t)rm[RM_USE3] >> off & lane_bits);
+                    const I lowpass = m & ~use3;
+                    const I uncapped = m & ~lanes_of<L>((uint32_t)rm[RM_CAP] >> off & lane_bits);
+                    const F T = expand_load<L>(rec_T + r, mb), a = expand_load<L>(rec_A + r, mb);
+                    r += __builtin_popcount(mb);
+                    const int64_t row = ry * TILE + off;
+                    const float y = (float)(tb.y0 + ry);
+                    const F q0 = x * ax0 + (y * ay0 + a00), q1 = x * ax1 + (y * ay1 + a01), q2 = x * ax2 + (y * ay2 + a02);
+                    const F inv = use3 ? 1.0f / (use3 ? q2 : 1.0f) : 0.0f;
+                    const F u = q0 * inv, v = q1 * inv;
+                    const F z = use3 ? det * inv : zc;
+                    const F iz = use3 ? q2 * inv_det : inv_zc;
+                    const F w = a * T;
+                    const F mm = mscale * (1.0f - nearf * iz);
+#define ROW(f) (*(const F *)(tab + (f) * NPX + row))
+                    const F gq0 = ROW(PX_GN0), gq1 = ROW(PX_GN1), gq2 = ROW(PX_GN2);
+                    const F gDp = ROW(PX_GD), gdW = ROW(PX_W), gdM1 = ROW(PX_M1);
+                    F vsum = ROW(PX_GA) + gDp * (z - ROW(PX_DEXP)) + gq0 * n0 + gq1 * n1 + gq2 * n2;
+                    vsum += mm * mm * gdW - 2.0f * mm * gdM1 + ROW(PX_M2);
+                    for (int c = 0; c < C; c++) {
+                        const F gf = ROW(PX_FEAT + c);
+                        vsum += gf * fs[c];
+                        gfe[c] += gf * w;
+                    }
+                    gn0 += gq0 * w;
+                    gn1 += gq1 * w;
+                    gn2 += gq2 * w;
+                    const F Bp = *(const F *)(B + row);
+                    const F dL_da = T * (vsum - Bp);
+                    *(F *)(B + row) = m ? a * vsum + (1.0f - a) * Bp : Bp;
+                    F dz = gDp * w + 2.0f * w * (mm * gdW - gdM1) * mscale * nearf * iz * iz;
+                    dz += (ROW(PX_MED) == li) ? ROW(PX_GMED) : 0.0f;
+                    dz = m ? dz : 0.0f;
 #undef ROW
-                // The cap alpha = 0.99 has zero derivative.
-                const vf drho = uncapped ? -0.5f * a * dL_da : 0.0f;
-                gop += uncapped ? dL_da * a * inv_o : 0.0f;
-                // rho = (q0^2 + q1^2) / q2^2 and z = det / q2 on the intersection branch.
-                const vf dq0 = use3 ? 2.0f * drho * u * inv : 0.0f;
-                const vf dq1 = use3 ? 2.0f * drho * v * inv : 0.0f;
-                const vf dq2 = use3 ? -(2.0f * drho * (u * u + v * v) + dz * z) * inv : 0.0f;
-                g0 += dq0;
-                g1 += dq1;
-                g2 += dq2;
-                gy0 += (y - cy) * dq0;
-                gy1 += (y - cy) * dq1;
-                gy2 += (y - cy) * dq2;
-                gdet += use3 ? dz * inv : 0.0f;
-                // rho2 = 2 |(x, y) - c|^2 and z = T_w2 on the low-pass branch.
-                gdrho_lp += lowpass ? drho : 0.0f;
-                gcy += lowpass ? -4.0f * (y - cy) * drho : 0.0f;
-                gtw2 += lowpass ? dz : 0.0f;
-            }
-            const vf dxc = x - cx;
-            const double s0 = hsum(g0), s1 = hsum(g1), s2 = hsum(g2);
-            sl[S_AX] = hsum(dxc * g0) + (double)cx * s0;
-            sl[S_AX + 1] = hsum(dxc * g1) + (double)cx * s1;
-            sl[S_AX + 2] = hsum(dxc * g2) + (double)cx * s2;
-            sl[S_AY] = hsum(gy0) + (double)cy * s0;
-            sl[S_AY + 1] = hsum(gy1) + (double)cy * s1;
-            sl[S_AY + 2] = hsum(gy2) + (double)cy * s2;
-            sl[S_A0] = s0;
-            sl[S_A0 + 1] = s1;
-            sl[S_A0 + 2] = s2;
-            sl[S_DET] = hsum(gdet);
-            sl[S_CX] = hsum(-4.0f * dxc * gdrho_lp);
-            sl[S_CY] = hsum(gcy);
-            sl[S_TW2] = hsum(gtw2);
-            sl[S_OPACITY] = hsum(gop);
-            sl[S_NORMAL] = hsum(gn0);
-            sl[S_NORMAL + 1] = hsum(gn1);
-            sl[S_NORMAL + 2] = hsum(gn2);
-            for (int c = 0; c < C; c++) sl[S_FEATURE + c] = hsum(gfe[c]);
+                    // The cap alpha = 0.99 has zero derivative.
+                    const F drho = uncapped ? -0.5f * a * dL_da : 0.0f;
+                    gop += uncapped ? dL_da * a * inv_o : 0.0f;
+                    // rho = (q0^2 + q1^2) / q2^2 and z = det / q2 on the intersection branch.
+                    const F dq0 = use3 ? 2.0f * drho * u * inv : 0.0f;
+                    const F dq1 = use3 ? 2.0f * drho * v * inv : 0.0f;
+                    const F dq2 = use3 ? -(2.0f * drho * (u * u + v * v) + dz * z) * inv : 0.0f;
+                    g0 += dq0;
+                    g1 += dq1;
+                    g2 += dq2;
+                    gy0 += (y - cy) * dq0;
+                    gy1 += (y - cy) * dq1;
+                    gy2 += (y - cy) * dq2;
+                    gdet += use3 ? dz * inv : 0.0f;
+                    // rho2 = 2 |(x, y) - c|^2 and z = T_w2 on the low-pass branch.
+                    gdrho_lp += lowpass ? drho : 0.0f;
+                    gcy += lowpass ? -4.0f * (y - cy) * drho : 0.0f;
+                    gtw2 += lowpass ? dz : 0.0f;
+                }
+                const F dxc = x - cx;
+                const double s0 = hsum(g0), s1 = hsum(g1), s2 = hsum(g2);
+                sl[S_AX] = hsum(dxc * g0) + (double)cx * s0;
+                sl[S_AX + 1] = hsum(dxc * g1) + (double)cx * s1;
+                sl[S_AX + 2] = hsum(dxc * g2) + (double)cx * s2;
+                sl[S_AY] = hsum(gy0) + (double)cy * s0;
+                sl[S_AY + 1] = hsum(gy1) + (double)cy * s1;
+                sl[S_AY + 2] = hsum(gy2) + (double)cy * s2;
+                sl[S_A0] = s0;
+                sl[S_A0 + 1] = s1;
+                sl[S_A0 + 2] = s2;
+                sl[S_DET] = hsum(gdet);
+                sl[S_CX] = hsum(-4.0f * dxc * gdrho_lp);
+                sl[S_CY] = hsum(gcy);
+                sl[S_TW2] = hsum(gtw2);
+                sl[S_OPACITY] = hsum(gop);
+                sl[S_NORMAL] = hsum(gn0);
+                sl[S_NORMAL + 1] = hsum(gn1);
+                sl[S_NORMAL + 2] = hsum(gn2);
+                for (int c = 0; c < C; c++) sl[S_FEATURE + c] = hsum(gfe[c]);
+            };
+            if (xb - tb.x0 < 8)
+                pairs(Width<8>{}, 0);
+            else if (xa - tb.x0 >= 8)
+                pairs(Width<8>{}, 8);
+            else
+                pairs(Width<16>{}, 0);
         }
     }
 }
@@ -508,7 +615,7 @@ void simd_exp(const float *x, float *out, int64_t n) {
         vf v = {};
         const int64_t k = n - i < 16 ? n - i : 16;
         for (int64_t l = 0; l < k; l++) v[l] = x[i + l];
-        const vf e = vexp(v);
+        const vf e = vexp<16>(v);
         for (int64_t l = 0; l < k; l++) out[i + l] = e[l];
     }
 }
