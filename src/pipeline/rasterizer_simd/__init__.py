@@ -5,10 +5,12 @@ A package of its own, above the rasterizer, until training uses it: every traini
 depends on the whole ``src/pipeline/rasterizer`` folder, so a file added there is a full
 repro (``dvc.yaml``).
 
-The per-surfel set-up, the tile binning, the entry gather and the per-surfel chain rule are
-the ``cpu`` backend's numba kernels; the forward and backward compositing (~80% of a render
-at 800x600) are ``_simd.cpp``: a tile row of 16 pixels in one vector of float32 lanes
-(docs/rasterizer.md, "The simd kernels"). Float32 input only; arithmetic is float32 like
+The per-surfel set-up, the tile binning and the per-surfel chain rule are the ``cpu``
+backend's numba kernels (with a radix depth sort of their own, :func:`depth_order`, and one
+float32 row per surfel, :func:`pack_surfels`, that the kernels read through the tile lists);
+the forward and backward compositing (~80% of a render at 800x600) are ``_simd.cpp``: a tile
+row of 16 pixels in one vector of float32 lanes, or 8 where an entry's box lies in one half
+of its tile (docs/rasterizer.md, "The simd kernels"). Float32 input only; arithmetic is float32 like
 2DGS's CUDA kernels, so results match the ``cpu`` backend to float32 rounding, not bit for
 bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` for the median,
 ``rho3 <= rho2``) can fall on the other side.
@@ -16,9 +18,10 @@ bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` fo
 The source is compiled on first use by the system's C++ compiler (``$CXX``, else ``c++``) for
 the host CPU (``-march=native``) and cached in ``__pycache__`` next to this module, keyed by
 the source, compiler, flags and the CPU's feature flags. :func:`available` says whether it
-built, and why not. Each C++ call renders one worker's tiles of the ``cpu`` backend's tile
-schedule (made for ``numba.get_num_threads()`` workers), called from a numba ``prange`` so that
-numba's OpenMP threads run them; results do not depend on the number of threads.
+built, and why not. One C++ call per thread, from a numba ``prange`` so that numba's OpenMP
+threads run them, each taking the next tile (largest first) from a shared counter until none
+is left; a tile is one call's sequential pass, so results do not depend on the number of
+threads or on which thread renders a tile.
 """
 from __future__ import annotations
 
@@ -300,8 +303,8 @@ def _ptr(a: np.ndarray) -> int:
     return a.ctypes.data
 
 
-# Mirrors cpu._Rasterize but for the records' layout and the compositing calls; the two become
-# one when these kernels move into rasterizer/ (an edit there is a full repro).
+# Mirrors cpu._Rasterize but for the surfel rows, the records' layout and the compositing calls;
+# the two become one when these kernels move into rasterizer/ (an edit there is a full repro).
 class _Rasterize(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: cpu.Geometry, camera: Camera, depth_eps: float):
