@@ -69,42 +69,33 @@ template <class F> inline F vmax(F a, F b) { return a > b ? a : b; }
 template <class F> inline F vmin(F a, F b) { return a < b ? a : b; }
 template <class F> inline F vabs(F a) { return a < 0 ? -a : a; }
 
-inline uint32_t bits(vi m) {
+// Per helper: the AVX-512 instruction where the compiler targets it, a lane loop otherwise.
+// The lanes set in ``m`` as bits.
+template <class I> inline uint32_t bits(I m) {
+    constexpr int L = sizeof(I) / sizeof(int32_t);
 #if defined(__AVX512F__)
-    return _mm512_test_epi32_mask((__m512i)m, (__m512i)m);
-#else
-    uint32_t b = 0;
-    for (int l = 0; l < 16; l++) b |= (m[l] != 0 ? 1u : 0u) << l;
-    return b;
+    if constexpr (L == 16) return _mm512_test_epi32_mask((__m512i)m, (__m512i)m);
 #endif
-}
-
-inline uint32_t bits(vi8 m) {
 #if defined(__AVX512VL__)
-    return _mm256_test_epi32_mask((__m256i)m, (__m256i)m);
-#else
-    uint32_t b = 0;
-    for (int l = 0; l < 8; l++) b |= (m[l] != 0 ? 1u : 0u) << l;
-    return b;
+    if constexpr (L == 8) return _mm256_test_epi32_mask((__m256i)m, (__m256i)m);
 #endif
+    uint32_t b = 0;
+    for (int l = 0; l < L; l++) b |= (m[l] != 0 ? 1u : 0u) << l;
+    return b;
 }
 
-template <int L> inline typename Lanes<L>::I lanes_of(uint32_t b);
-template <> inline vi lanes_of<16>(uint32_t b) {
+// The inverse: a lane mask with the lanes of the bits of ``b`` set.
+template <int L> inline typename Lanes<L>::I lanes_of(uint32_t b) {
+    typedef typename Lanes<L>::I I;
 #if defined(__AVX512F__) && defined(__AVX512DQ__)
-    return (vi)_mm512_movm_epi32((__mmask16)b);
-#else
-    const vi bit = {1, 2, 4, 8, 16, 32, 64, 128, 256, 512, 1024, 2048, 4096, 8192, 16384, 32768};
-    return ((vi){} + (int32_t)b & bit) != 0;
+    if constexpr (L == 16) return (I)_mm512_movm_epi32((__mmask16)b);
 #endif
-}
-template <> inline vi8 lanes_of<8>(uint32_t b) {
 #if defined(__AVX512VL__) && defined(__AVX512DQ__)
-    return (vi8)_mm256_movm_epi32((__mmask8)b);
-#else
-    const vi8 bit = {1, 2, 4, 8, 16, 32, 64, 128};
-    return ((vi8){} + (int32_t)b & bit) != 0;
+    if constexpr (L == 8) return (I)_mm256_movm_epi32((__mmask8)b);
 #endif
+    I bit = {};
+    for (int l = 0; l < L; l++) bit[l] = 1 << l;
+    return ((I){} + (int32_t)b & bit) != 0;
 }
 
 // The 16 lanes as two float64 vectors (lanes 0-7, 8-15).
@@ -120,51 +111,35 @@ inline void widen(vf a, vd &lo, vd &hi) {
 #endif
 }
 
-// Store the lanes of ``v`` selected by ``b`` contiguously at ``dst`` (16 floats are written:
+// Store the lanes of ``v`` selected by ``b`` contiguously at ``dst`` (a whole vector is written:
 // the caller leaves room behind the last record).
-inline void compress_store(float *dst, uint32_t b, vf v) {
+template <class F> inline void compress_store(float *dst, uint32_t b, F v) {
+    constexpr int L = sizeof(F) / sizeof(float);
 #if defined(__AVX512F__)
-    _mm512_storeu_ps(dst, _mm512_maskz_compress_ps((__mmask16)b, (__m512)v));
-#else
-    int k = 0;
-    for (int l = 0; l < 16; l++)
-        if (b >> l & 1) dst[k++] = v[l];
+    if constexpr (L == 16) return _mm512_storeu_ps(dst, _mm512_maskz_compress_ps((__mmask16)b, (__m512)v));
 #endif
-}
-
-inline void compress_store(float *dst, uint32_t b, vf8 v) {
 #if defined(__AVX512VL__)
-    _mm256_storeu_ps(dst, _mm256_maskz_compress_ps((__mmask8)b, (__m256)v));
-#else
-    int k = 0;
-    for (int l = 0; l < 8; l++)
-        if (b >> l & 1) dst[k++] = v[l];
+    if constexpr (L == 8) return _mm256_storeu_ps(dst, _mm256_maskz_compress_ps((__mmask8)b, (__m256)v));
 #endif
+    int k = 0;
+    for (int l = 0; l < L; l++)
+        if (b >> l & 1) dst[k++] = v[l];
 }
 
 // The inverse: consecutive floats at ``src`` into the lanes selected by ``b``, 0 elsewhere.
-template <int L> inline typename Lanes<L>::F expand_load(const float *src, uint32_t b);
-template <> inline vf expand_load<16>(const float *src, uint32_t b) {
+template <int L> inline typename Lanes<L>::F expand_load(const float *src, uint32_t b) {
+    typedef typename Lanes<L>::F F;
 #if defined(__AVX512F__)
-    return (vf)_mm512_maskz_expand_ps((__mmask16)b, _mm512_loadu_ps(src));
-#else
-    vf v = {};
-    int k = 0;
-    for (int l = 0; l < 16; l++)
-        if (b >> l & 1) v[l] = src[k++];
-    return v;
+    if constexpr (L == 16) return (F)_mm512_maskz_expand_ps((__mmask16)b, _mm512_loadu_ps(src));
 #endif
-}
-template <> inline vf8 expand_load<8>(const float *src, uint32_t b) {
 #if defined(__AVX512VL__)
-    return (vf8)_mm256_maskz_expand_ps((__mmask8)b, _mm256_loadu_ps(src));
-#else
-    vf8 v = {};
+    if constexpr (L == 8) return (F)_mm256_maskz_expand_ps((__mmask8)b, _mm256_loadu_ps(src));
+#endif
+    F v = {};
     int k = 0;
-    for (int l = 0; l < 8; l++)
+    for (int l = 0; l < L; l++)
         if (b >> l & 1) v[l] = src[k++];
     return v;
-#endif
 }
 
 // Sum of 8 doubles in a fixed order.
