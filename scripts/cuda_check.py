@@ -27,9 +27,9 @@ from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import load_params, section
 from pipeline.data.dtu import load_scene
-from pipeline.optimize.surfels import read_surfel_ply
 from pipeline.rasterizer import Camera, rasterize
 from pipeline.runs.optimize import run_optimize
+from pipeline.surfels import read_surfel_ply
 
 
 def train_once(scene: str, backend: str, work: Path) -> tuple[Path, float]:

@@ -20,7 +20,7 @@ from pipeline.data.dtu import load_scene
 from pipeline.evaluation import gt
 from pipeline.evaluation.depth_error import gt_depths_mm
 from pipeline.meshing.surfels import render_depths_mm
-from pipeline.optimize.surfels import read_surfel_ply
+from pipeline.surfels import read_surfel_ply
 
 
 def _stats(d: np.ndarray) -> dict:

@@ -6,8 +6,8 @@ import sys
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "tests"))
-from test_dvc_closure import SRC, import_closure, stage_commands  # noqa: E402
+sys.path.insert(0, str(REPO / "scripts"))
+from code_closure import SRC, import_closure, stage_commands  # noqa: E402
 
 
 def minimal(files: set[Path]) -> list[str]:

@@ -10,109 +10,19 @@ edit to an uncovered file would leave outputs that ``dvc repro`` calls up to dat
 """
 from __future__ import annotations
 
-import ast
-import re
-import shlex
+import importlib.util
 from pathlib import Path
 
 import pytest
 import yaml
 
-from pipeline.cli import COMMANDS
-
-REPO = Path(__file__).resolve().parents[1]
-SRC = REPO / "src"
-MODULE_NAME = re.compile(r"^pipeline(\.[A-Za-z_]\w*)+$")
-
-
-def module_file(name: str, src: Path = SRC) -> Path | None:
-    """The file of module ``name`` under ``src`` (a package's ``__init__.py``), or None."""
-    base = src.joinpath(*name.split("."))
-    for f in (base.with_suffix(".py"), base / "__init__.py"):
-        if f.is_file():
-            return f
-    return None
-
-
-def _with_parents(name: str, src: Path) -> set[Path]:
-    """Importing ``a.b.c`` runs ``a/__init__.py``, ``a/b/__init__.py`` and ``a/b/c``."""
-    parts = name.split(".")
-    files = {module_file(".".join(parts[:i]), src) for i in range(1, len(parts) + 1)}
-    return {f for f in files if f is not None}
-
-
-def imported_files(path: Path, src: Path = SRC) -> set[Path]:
-    """Files under ``src/pipeline`` that importing the module at ``path`` runs directly."""
-    rel = path.relative_to(src).with_suffix("")
-    package = list(rel.parts[:-1])  # the package relative imports start from (also for __init__.py)
-    found: set[Path] = set()
-
-    def add(name: str, *, names: tuple[str, ...] = ()) -> None:
-        if not (name == "pipeline" or name.startswith("pipeline.")):
-            return
-        found.update(_with_parents(name, src))
-        for n in names:  # ``from pkg import sub`` imports the submodule sub
-            f = module_file(f"{name}.{n}", src)
-            if f is not None:
-                found.update(_with_parents(f"{name}.{n}", src))
-
-    for node in ast.walk(ast.parse(path.read_text(), filename=str(path))):
-        if isinstance(node, ast.Import):
-            for alias in node.names:
-                add(alias.name)
-        elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                base = package[: len(package) - (node.level - 1)]
-                name = ".".join(base + ([node.module] if node.module else []))
-            else:
-                name = node.module or ""
-            add(name, names=tuple(a.name for a in node.names))
-        elif isinstance(node, ast.Constant) and isinstance(node.value, str) and MODULE_NAME.match(node.value):
-            if module_file(node.value, src) is not None:  # a module named in a string: a dynamic import
-                add(node.value)
-    return found
-
-
-def import_closure(module: str, src: Path = SRC) -> set[Path]:
-    """Every file under ``src/pipeline`` that importing ``module`` can run."""
-    todo = list(_with_parents(module, src))
-    seen: set[Path] = set()
-    while todo:
-        f = todo.pop()
-        if f in seen:
-            continue
-        seen.add(f)
-        todo.extend(imported_files(f, src) - seen)
-    return seen
-
-
-def stage_commands(dvc_yaml: Path) -> dict[str, tuple[list[str], list[str]]]:
-    """stage name -> (modules its command runs, its deps), ``foreach`` stages by their template."""
-    stages = yaml.safe_load(dvc_yaml.read_text())["stages"]
-    out = {}
-    for name, stage in stages.items():
-        body = stage.get("do", stage)
-        cmds = body["cmd"] if isinstance(body["cmd"], list) else [body["cmd"]]
-        modules = []
-        for cmd in cmds:
-            words = shlex.split(cmd)
-            for i, w in enumerate(words[:-1]):
-                if w == "gcgs":
-                    sub = words[i + 1]
-                    assert sub in COMMANDS, f"stage {name}: `gcgs {sub}` is not a gcgs subcommand"
-                    modules.append(COMMANDS[sub][0])
-                elif w == "-m" and words[i + 1].startswith("pipeline"):
-                    modules.append(words[i + 1])
-        deps = [d if isinstance(d, str) else next(iter(d)) for d in body.get("deps", [])]
-        out[name] = (modules, deps)
-    return out
-
-
-def uncovered(files: set[Path], deps: list[str], repo: Path = REPO) -> list[str]:
-    """Files (repository-relative) that no dep names, itself or as a folder holding it."""
-    covered = [Path(d.rstrip("/")) for d in deps if "${" not in d]
-    rel = sorted(f.relative_to(repo).as_posix() for f in files)
-    return [f for f in rel if not any(Path(f) == c or c in Path(f).parents for c in covered)]
+_spec = importlib.util.spec_from_file_location(
+    "code_closure", Path(__file__).resolve().parents[1] / "scripts" / "code_closure.py")
+code_closure = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(code_closure)
+REPO, SRC = code_closure.REPO, code_closure.SRC
+import_closure, stage_commands, uncovered = code_closure.import_closure, code_closure.stage_commands, code_closure.uncovered
+imported_files, module_file = code_closure.imported_files, code_closure.module_file
 
 
 STAGES = stage_commands(REPO / "dvc.yaml")
@@ -137,7 +47,7 @@ def test_stage_deps_cover_the_code_it_imports(stage):
 # Stages that read the init's files but never run a backend: an edit to a backend or to the
 # init's settings must not make their code stale (it reruns them only through the init's
 # outputs, when those change).
-READS_INIT_OUTPUTS = ("priors", "optimize", "mesh", "evaluate", "renders", "variant-train", "variant-score")
+READS_INIT_OUTPUTS = ("priors", "optimize", "mesh", "score", "renders", "variant-train", "variant-score")
 
 
 @pytest.mark.parametrize("stage", READS_INIT_OUTPUTS)
@@ -151,6 +61,31 @@ def test_init_backends_are_not_code_of_the_stages_after_it(stage):
                "pipeline/config/priors.py", "pipeline/config/ablation.py", "pipeline/config/scenes.py",
                "pipeline/config/variants.py"}
     assert set(init_code) <= allowed, f"stage {stage} imports init code or settings: {sorted(set(init_code) - allowed)}"
+
+
+# Stages after the training read the trained surfels through pipeline.surfels (the model and
+# its PLY files), below the trainer: the trainer's code (the optimize package, the loss
+# terms) is not theirs, so an edit there (a docstring) reruns only the training stages, and
+# these only when the surfels it writes change.
+AFTER_TRAINING = ("mesh", "score", "variant-score", "renders")
+TRAINER_CODE = ("src/pipeline/optimize", "src/pipeline/losses")
+
+
+def _touches(path: str, code: str) -> bool:
+    """``path`` is ``code``, lies under it, or is a folder holding it."""
+    a, b = Path(path.rstrip("/")), Path(code)
+    return a == b or b in a.parents or a in b.parents
+
+
+@pytest.mark.parametrize("stage", AFTER_TRAINING)
+def test_trainer_code_is_not_code_of_the_stages_after_it(stage):
+    modules, deps = STAGES[stage]
+    closure = sorted(f.relative_to(REPO).as_posix() for f in set().union(*(import_closure(m) for m in modules)))
+    imported = [f for f in closure if any(_touches(f, c) for c in TRAINER_CODE)]
+    assert not imported, f"stage {stage} imports the trainer's code: {imported}"
+    listed = [d for d in deps if "${" not in d and any(_touches(d, c) for c in TRAINER_CODE)]
+    assert not listed, f"dvc.yaml stage {stage} lists the trainer's code as deps: {listed}"
+
 
 # The checker itself, on a small package written here.
 def _write(root: Path, files: dict[str, str]) -> None:

@@ -38,7 +38,7 @@ def test_bad_input_is_one_line_naming_the_file(tmp_path, capsys):
 
 
 def test_bad_config_override_is_one_line(tmp_path, capsys):
-    assert main(["tsdf", "--init-dir", str(tmp_path), "--scene", str(tmp_path), "--out", str(tmp_path / "m.ply"),
+    assert main(["tsdf", "--init-dir", str(tmp_path / "init"), "--scene", str(tmp_path / "scene"), "--out", str(tmp_path / "m.ply"),
                  "--voxel-norm", "0.02", "--trunc-norm", "0.01"]) == 1
     assert capsys.readouterr().err == "gcgs tsdf: error: mesh: need 0 < voxel_norm < trunc_norm, got 0.02, 0.01\n"
 

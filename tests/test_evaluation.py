@@ -18,7 +18,7 @@ CENTRE = np.array([-28.0, -13.0, 641.0])  # scan24's object centre (DTU world, m
 RADIUS = 50.0  # a DTU-object-sized ball, 100 mm across
 # Cameras sit at smaller z (DTU-like); the ground cuts the far cap (z > centre + 40).
 PLANE = np.array([0.0, 0.0, -1.0, CENTRE[2] + 40.0])
-NO_CULL = EvaluateConfig(cull_views="none")
+NO_CULL = EvaluateConfig.default(cull_views="none")
 
 
 def sphere(radius=RADIUS, centre=CENTRE, resolution=60):
@@ -171,7 +171,7 @@ def test_empty_or_degenerate_mesh_is_an_error(ground_truth, V, F, match):
 def test_bad_parameters_are_rejected(ground_truth):
     V, F, _ = sphere(resolution=10)
     with pytest.raises(ValueError, match="sample_spacing_mm"):
-        dtu_eval.evaluate_mesh(V, F, ground_truth, EvaluateConfig(cull_views="none", sample_spacing_mm=0), log=None)
+        dtu_eval.evaluate_mesh(V, F, ground_truth, EvaluateConfig.default(cull_views="none", sample_spacing_mm=0), log=None)
 
 
 # --- culling --------------------------------------------------------------------------------
@@ -202,7 +202,7 @@ def test_culling_removes_what_is_outside_the_masks(ground_truth):
     assert dtu_eval.cull_vertices(Vd, [narrow], 24.0).all()
     # Through evaluate_mesh: counts say what was culled, and the metrics are the clean ones.
     m = dtu_eval.evaluate_mesh(all_V, np.concatenate([F, Fd + len(V)]), ground_truth,
-                               EvaluateConfig(), views=views, log=None)
+                               EvaluateConfig.default(), views=views, log=None)
     assert m["counts"]["culled_vertices"] == len(V) and m["counts"]["culled_triangles"] == len(F)
     assert m["config"]["cull_view_ids"] == [0, 1, 2] and m["accuracy_mm"] < 0.15
 
@@ -210,7 +210,7 @@ def test_culling_removes_what_is_outside_the_masks(ground_truth):
 def test_culling_everything_is_reported(ground_truth):
     views = synthetic_views()
     Vd, Fd, _ = sphere(radius=10.0, centre=CENTRE + [0, 110.0, 0], resolution=10)
-    m = dtu_eval.evaluate_mesh(Vd, Fd, ground_truth, EvaluateConfig(), views=views, log=None)
+    m = dtu_eval.evaluate_mesh(Vd, Fd, ground_truth, EvaluateConfig.default(), views=views, log=None)
     assert not m["valid"] and any("culling removed every vertex" in p for p in m["problems"])
 
 
@@ -336,7 +336,7 @@ def test_matches_a_transcription_of_the_public_script(tmp_path):
     views = synthetic_views()
     for v in views:  # silhouettes of the 15 mm ball, so that some data is culled
         v.mask[:] = ball_mask(v.K, v.world_to_cam, v.mask.shape, radius=15.0)
-    m = dtu_eval.evaluate_mesh(data_V, data_F, g, EvaluateConfig(), views=views, seed=3, log=None)
+    m = dtu_eval.evaluate_mesh(data_V, data_F, g, EvaluateConfig.default(), views=views, seed=3, log=None)
     acc, comp, keep, n_down, n_obs = public_script(data_V, data_F, views, tmp_path, 77, seed=3)
     assert m["counts"]["culled_vertices"] == keep.sum() < len(data_V)
     assert m["counts"]["data_downsampled"] == n_down and m["counts"]["data_in_obs"] == n_obs
@@ -401,8 +401,9 @@ def test_cli_errors_name_the_problem(tmp_path, capsys):
     assert "missing.ply: file not found" in capsys.readouterr().err
     (tmp_path / "garbage.ply").write_bytes(b"not a mesh")
     assert main(["evaluate", "--mesh", str(tmp_path / "garbage.ply"), *args]) == 1
-    assert "garbage.ply: no vertices read" in capsys.readouterr().err
-    assert main(["evaluate", "--mesh", str(tmp_path / "points_only.ply"), "--gt", str(tmp_path), *args]) == 1
+    assert "garbage.ply: not a PLY file" in capsys.readouterr().err
+    (tmp_path / "no_gt").mkdir()
+    assert main(["evaluate", "--mesh", str(tmp_path / "points_only.ply"), "--gt", str(tmp_path / "no_gt"), *args]) == 1
     assert "ObsMask" in capsys.readouterr().err
     assert not out.exists()
 

@@ -37,7 +37,7 @@ def test_synth_then_evaluate_offset_meshes(tmp_path, bundled_scan):
     from pipeline.evaluation import dtu_eval, seen
 
     m = dtu_eval.evaluate_mesh(*gtmod.read_mesh(tmp_path / "offset.ply"), gtmod.read_ground_truth(scene / "gt", None),
-                               EvaluateConfig(), log=None, seen_views=seen.load_input_views(scene, [23, 24, 33]))
+                               EvaluateConfig.default(), log=None, seen_views=seen.load_input_views(scene, [23, 24, 33]))
     acc, comp = m["accuracy_by_views_seen"], m["completeness_by_views_seen"]
     assert m["counts"]["completeness_used"] == m["counts"]["gt_above_plane"]
     assert sum(g["fraction"] for g in comp.values()) == pytest.approx(1.0)

@@ -36,7 +36,7 @@ def _depth(value_in_hole: float | None = None, hole_px: int = 4) -> np.ndarray:
 
 
 def _hits_centre(V, F) -> bool:
-    from pipeline.meshing.raycast import MeshCaster
+    from pipeline.raycast import MeshCaster
 
     hit = MeshCaster(V, F).cast(K1, np.eye(4), 101, 101).depth_mm
     return bool(hit[50, 50] > 0)
@@ -118,5 +118,5 @@ def test_the_config_rejects_a_bad_hole_radius(bad):
     from pipeline.errors import ConfigError
 
     with pytest.raises(ConfigError, match="mesh.fill_holes_norm"):
-        MeshConfig(fill_holes_norm=bad)
-    assert MeshConfig(fill_holes_norm=0.0).fill_holes_norm == 0.0
+        MeshConfig.default(fill_holes_norm=bad)
+    assert MeshConfig.default(fill_holes_norm=0.0).fill_holes_norm == 0.0

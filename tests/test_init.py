@@ -32,7 +32,7 @@ def spheres():
 
 @pytest.fixture(scope="module")
 def mvs_result(spheres):
-    return mvs.run(spheres[0], InitConfig())
+    return mvs.run(spheres[0], InitConfig.default())
 
 
 def _write(scene, root: Path) -> Path:
@@ -114,7 +114,7 @@ def test_consistency_rejects_a_corrupted_view(spheres):
     depth = gt.astype(np.float32)
     valid = gt > 0
     depth[1] *= 1.02  # 2% off: about 13 mm at this distance
-    views = check_consistency(depth, valid, scene.K, scene.world_to_cam, scene.images, InitConfig().consistency)
+    views = check_consistency(depth, valid, scene.K, scene.world_to_cam, scene.images, InitConfig.default().consistency)
     # Views 0 and 2 agree with each other, view 1 with nobody (but a few silhouette pixels
     # whose scaled depth happens to land on the other sphere).
     assert views[1].valid.sum() < 0.01 * valid[1].sum()
@@ -162,7 +162,7 @@ def test_mvs_depth_maps_are_metric_and_masked(spheres, mvs_result):
 def test_mvs_rejects_textureless_views(spheres):
     scene, _ = spheres
     flat = replace(scene, images=np.full_like(scene.images, 0.5))
-    res = mvs.sweep_view(flat, 0, InitConfig().mvs)
+    res = mvs.sweep_view(flat, 0, InitConfig.default().mvs)
     assert res.valid.sum() == 0
 
 
@@ -203,13 +203,13 @@ def test_best_source_matches_surface_hidden_from_one_source():
     assert half.sum() > 200 and both.sum() > 3000  # the scene has both kinds of pixel
 
     def correct_and_wrong(margin):
-        sw = mvs.sweep_view(scene, 0, replace(InitConfig().mvs, best_source_margin=margin))
+        sw = mvs.sweep_view(scene, 0, replace(InitConfig.default().mvs, best_source_margin=margin))
         valid = sw.valid[ys, xs]
         good = valid & (np.abs(sw.depth_mm[ys, xs] - gt[0][ys, xs]) < 0.01 * gt[0][ys, xs])
         return good, valid & ~good
 
     good_mean, wrong_mean = correct_and_wrong(2.0)  # NCC <= 1: the mean alone
-    good_best, wrong_best = correct_and_wrong(InitConfig().mvs.best_source_margin)
+    good_best, wrong_best = correct_and_wrong(InitConfig.default().mvs.best_source_margin)
     assert good_best[half].mean() > 0.5 and good_best[half].mean() > 2.5 * good_mean[half].mean()
     assert good_best[both].mean() > 0.9
     assert wrong_best.mean() < 1.5 * wrong_mean.mean() + 0.01
@@ -217,7 +217,7 @@ def test_best_source_matches_surface_hidden_from_one_source():
 
 def test_negative_best_source_margin_is_named():
     with pytest.raises(ConfigError, match="best_source_margin"):
-        replace(InitConfig().mvs, best_source_margin=-0.1)
+        replace(InitConfig.default().mvs, best_source_margin=-0.1)
 
 
 @pytest.fixture(scope="module")
@@ -227,7 +227,7 @@ def plain_spheres():
 
 def _fill_config(width: int = 100) -> InitConfig:
     """The default init config with the plain-region fill swept ``width`` pixels wide."""
-    cfg = InitConfig()
+    cfg = InitConfig.default()
     return replace(cfg, mvs=replace(cfg.mvs, fill_width=width))
 
 
@@ -242,7 +242,7 @@ def test_plain_shaded_surface_is_found_by_the_fill(plain_spheres):
     """One albedo, Lambertian shading only: NCC matches a part (a shading ramp matches its
     own shifted copy), the absolute-difference fill most of it, at the right depth."""
     scene, gt = plain_spheres
-    ncc = mvs.sweep_view(scene, 0, InitConfig().mvs).valid
+    ncc = mvs.sweep_view(scene, 0, InitConfig.default().mvs).valid
     assert ncc.sum() < 0.5 * scene.masks[0].sum(), ncc.sum() / scene.masks[0].sum()
     for r, res in enumerate(_fill(scene)):
         assert not (res.valid & ~scene.masks[r]).any()
@@ -281,7 +281,7 @@ def test_mvs_fills_plain_regions_only_where_ncc_fails(spheres, plain_spheres, mv
 
 def test_sfm_points_are_on_the_surface(spheres):
     scene, _ = spheres
-    res = sfm.run(scene, InitConfig())
+    res = sfm.run(scene, InitConfig.default())
     d = distance_to_spheres(res.cloud.points_mm, scene)
     assert len(res.cloud) > 100
     assert np.median(d) < 1.0, np.median(d)
@@ -290,7 +290,7 @@ def test_sfm_points_are_on_the_surface(spheres):
 
 def test_random_is_uniform_in_the_unit_sphere(spheres):
     scene, _ = spheres
-    cfg = InitConfig(random_points=20000)
+    cfg = InitConfig.default(random_points=20000)
     cloud = random_init.run(scene, cfg).cloud
     r = np.linalg.norm(cloud.points_mm - scene.norm_to_world[:3, 3], axis=1) / scene.norm_scale_mm
     assert len(cloud) == 20000 and r.max() <= 1.0
@@ -312,7 +312,7 @@ def fake_model(small_scene, tmp_path_factory):
 
 def test_mast3r_recovers_metric_depth(small_scene, fake_model):
     scene, gt = small_scene
-    cfg = InitConfig()
+    cfg = InitConfig.default()
     cfg.mast3r.model = str(fake_model)
     res = mast3r.run(scene, cfg)
     assert len(res.info["fits"]) == 6
@@ -343,7 +343,7 @@ def test_mast3r_fit_with_shift():
 ])
 def test_mast3r_wrong_contract_is_named(small_scene, tmp_path, module, outputs, message):
     path = export(module, (128, 96), tmp_path / "bad.onnx", outputs=outputs)
-    cfg = InitConfig()
+    cfg = InitConfig.default()
     cfg.mast3r.model = str(path)
     with pytest.raises(ModelError, match=message):
         mast3r.run(small_scene[0], cfg)
@@ -352,7 +352,7 @@ def test_mast3r_wrong_contract_is_named(small_scene, tmp_path, module, outputs, 
 def test_mast3r_corrupt_or_missing_model(small_scene, tmp_path):
     bad = tmp_path / "corrupt.onnx"
     bad.write_bytes(b"\x08\x07garbage" * 10)
-    cfg = InitConfig()
+    cfg = InitConfig.default()
     cfg.mast3r.model = str(bad)
     with pytest.raises(ModelError, match=r"corrupt\.onnx: not a loadable ONNX model"):
         mast3r.run(small_scene[0], cfg)

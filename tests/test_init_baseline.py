@@ -28,7 +28,7 @@ def _on_sphere(n, rng, radius=50.0):
 
 def test_cloud_on_the_surface_scores_near_zero(sphere_gt):
     rng = np.random.default_rng(0)
-    m = cloud_metrics(_on_sphere(100000, rng), sphere_gt, EvaluateConfig())  # ~0.6 mm apart
+    m = cloud_metrics(_on_sphere(100000, rng), sphere_gt, EvaluateConfig.default())  # ~0.6 mm apart
     assert m["surface"] == "GT mesh"
     assert m["median_to_surface_mm"] < 0.05  # tessellation of the GT sphere only
     assert m["precision_1mm"] == 1.0 and m["recall_1mm"] > 0.99
@@ -37,11 +37,11 @@ def test_cloud_on_the_surface_scores_near_zero(sphere_gt):
 
 def test_cloud_offset_is_measured(sphere_gt):
     rng = np.random.default_rng(1)
-    m = cloud_metrics(_on_sphere(20000, rng, radius=52.0), sphere_gt, EvaluateConfig())
+    m = cloud_metrics(_on_sphere(20000, rng, radius=52.0), sphere_gt, EvaluateConfig.default())
     assert m["median_to_surface_mm"] == pytest.approx(2.0, abs=0.05)
     assert m["precision_1mm"] == 0.0
     # Half a sphere: the lower half is missing from the cloud, the GT cap is above z = 560.
     half = _on_sphere(20000, rng)
     half = half[half[:, 2] > 600.0]
-    m2 = cloud_metrics(half, sphere_gt, EvaluateConfig())
+    m2 = cloud_metrics(half, sphere_gt, EvaluateConfig.default())
     assert m2["recall_1mm"] < 0.8 and m2["completeness_mm"] > 1.0

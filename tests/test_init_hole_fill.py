@@ -155,8 +155,8 @@ def test_filled_points_lie_on_the_surface():
 
 def test_mvs_cloud_gains_the_filled_points():
     scene, gt = make_scene(200, 150)
-    base = mvs.run(scene, InitConfig(mvs=MVSConfig(hole_fill_area=0.0)))
-    cfg = InitConfig(mvs=MVSConfig(hole_fill_area=0.01))
+    base = mvs.run(scene, InitConfig.default(mvs=MVSConfig.default(hole_fill_area=0.0)))
+    cfg = InitConfig.default(mvs=MVSConfig.default(hole_fill_area=0.01))
     filled = mvs.run(scene, cfg)
     assert sum(filled.info["hole_filled_pixels"]) > 0
     assert "hole_filled_pixels" in base.info and base.info["hole_filled_pixels"] == []
@@ -170,4 +170,4 @@ def test_mvs_cloud_gains_the_filled_points():
 @pytest.mark.parametrize("kw", [{"hole_fill_area": -0.1}, {"hole_fill_area": 1.0}, {"hole_fill_max_bend": -1.0}])
 def test_bad_hole_fill_settings_are_named(kw):
     with pytest.raises(ConfigError, match="hole_fill"):
-        MVSConfig(**kw)
+        MVSConfig.default(**kw)

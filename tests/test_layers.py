@@ -10,13 +10,15 @@ ROOT = Path(__file__).resolve().parents[1] / "src" / "pipeline"
 
 # Lowest first; a package may import from any earlier layer.
 LAYERS = [
-    {"errors", "npz", "measure", "losses", "mvphoto"},
-    {"config", "geometry", "atomic", "onnx_models", "rasterizer"},
-    {"ply", "rasterizer_simd"},
+    {"errors", "npz", "measure", "losses"},
+    {"config", "geometry", "atomic", "jsonfile", "onnx_models", "rasterizer"},
+    {"ply", "curves", "rasterizer_simd", "raycast"},
+    {"surfels"},
     {"data"},
     {"init", "priors"},
     {"optimize"},
     {"meshing"},
+    {"masks"},
     {"evaluation"},
     {"synth"},
     {"runs", "reports", "sweep", "cli"},

@@ -5,10 +5,12 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import yaml
 import torch
 from plyfile import PlyData
 
@@ -19,10 +21,14 @@ from pipeline.data.capture import sphere_from_cameras
 from pipeline.data.layouts import detect
 from pipeline.data.prepare import prepare_scene
 from pipeline.data.scene import SceneError
-from pipeline.optimize.surfels import THICKNESS_RATIO, init_params, splats_3dgs_attribute_names, write_splats_3dgs_ply
+from pipeline.optimize.seed import init_params
+from pipeline.surfels import THICKNESS_RATIO, splats_3dgs_attribute_names, write_splats_3dgs_ply
 
 W, H = 80, 60
 SOURCE_VIEWS = (22, 23, 24, 33, 34)  # scan24 cameras of the synthetic capture: view ids 0..4 here
+
+
+REPO = Path(__file__).resolve().parents[1]
 
 
 def _cameras(bundled_scan):
@@ -249,10 +255,31 @@ def test_cli_prepares_a_colmap_capture_at_a_width_alone(tmp_path, scene_parts, c
     assert "images.bin: image '0000.png'" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("layout", ["colmap", "nerfstudio", "dtu"])
+def test_prepare_trains_on_every_image_of_a_capture_and_dtus_views_of_a_dtu_scan(tmp_path, scene_parts, layout):
+    """Without --views: every image of a COLMAP or nerfstudio capture (ids from 0), DTU's
+    protocol views (params data.views) only for a DTU scan; --views still picks."""
+    from pipeline.cli import main
+
+    K, T, S, imgs, masks = scene_parts
+    src = {"colmap": lambda: write_colmap(tmp_path / "c", K, T, S, imgs, masks),
+           "nerfstudio": lambda: write_nerfstudio(tmp_path / "n", K, T, imgs, masks),
+           "dtu": lambda: write_dtu(tmp_path / "d", K, T, S, imgs, masks)}[layout]()
+    params = yaml.safe_load((REPO / "params.yaml").read_text())
+    params["data"]["views"] = [1, 3, 4]
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    common = ["--width", "40", "--params", str(tmp_path / "params.yaml")]
+    assert main(["prepare", "--src", str(src), "--out", str(tmp_path / "all"), *common]) == 0
+    expected = [1, 3, 4] if layout == "dtu" else sorted(range(len(imgs)))
+    assert dtu.load_scene(tmp_path / "all", view_ids=None).view_ids == expected
+    assert main(["prepare", "--src", str(src), "--out", str(tmp_path / "two"), "--views", "0", "2", *common]) == 0
+    assert dtu.load_scene(tmp_path / "two", view_ids=None).view_ids == [0, 2]
+
+
 def test_broken_colmap_model_names_the_folder(tmp_path, scene_parts):
     K, T, S, imgs, _ = scene_parts
     src = write_colmap(tmp_path / "c", K, T, S, imgs, None)
-    (src / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 80 60 50\n")
+    (src / "sparse" / "0" / "cameras.txt").write_text("1 PINHOLE 80 60 50 50 x 30\n")
     with pytest.raises(SceneError, match=r"sparse/0: cannot read the COLMAP model"):
         _prepare(src, tmp_path / "out")
 

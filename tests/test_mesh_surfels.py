@@ -12,10 +12,16 @@ from optimize_scene import tiny_config, tiny_problem
 from pipeline import geometry
 from pipeline.config.mesh import MeshConfig
 from pipeline.evaluation.heldout import heldout_scores, iou, masked_psnr, visual_hull_silhouettes
-from pipeline.meshing.raycast import MeshCaster
 from pipeline.meshing.surfels import merge_init_depth, mesh_from_surfels, virtual_world_to_cams
 from pipeline.meshing.tsdf import FusionError
 from pipeline.optimize import init_from_cloud, make_views, train
+from pipeline.raycast import MeshCaster
+
+
+def mesh_config(**changes) -> MeshConfig:
+    """conf/'s mesh settings with those these tests were written with where conf/ has others
+    (2DGS's voxel 0.004, no init depth, no hole closing), then ``changes``."""
+    return MeshConfig.default(**{"voxel_norm": 0.004, "init_depth_rel_tol": 0.0, "fill_holes_norm": 0.0, **changes})
 
 
 @pytest.fixture(scope="module")
@@ -30,7 +36,7 @@ def trained(tmp_path_factory):
 
 def test_mesh_lies_on_the_surface(trained):
     scene, params = trained
-    mesh, info = mesh_from_surfels(params, scene, MeshConfig(voxel_norm=0.01, trunc_norm=0.04))
+    mesh, info = mesh_from_surfels(params, scene, mesh_config(voxel_norm=0.01, trunc_norm=0.04))
     assert info["triangles_kept"] > 100 and info["views_input"] == 3
     d = distance_to_spheres(mesh.vertices_mm, scene)
     voxel_mm = 0.01 * scene.norm_scale_mm
@@ -41,7 +47,7 @@ def test_transparent_model_is_an_error_not_an_empty_mesh(trained):
     scene, params = trained
     clear = replace(params, opacity_logits=torch.full_like(params.opacity_logits, -20.0))
     with pytest.raises(FusionError, match="no depth above alpha"):
-        mesh_from_surfels(clear, scene, MeshConfig())
+        mesh_from_surfels(clear, scene, mesh_config())
 
 
 def test_virtual_views_lie_between_the_inputs():
@@ -87,7 +93,7 @@ def test_heldout_scores_the_mesh_silhouette(trained):
     """The mesh fused from the surfels covers most of each mask; the same mesh
     moved out of every view's frustum covers nothing; half of it covers less."""
     scene, params = trained
-    mesh, _ = mesh_from_surfels(params, scene, MeshConfig(voxel_norm=0.01, trunc_norm=0.04))
+    mesh, _ = mesh_from_surfels(params, scene, mesh_config(voxel_norm=0.01, trunc_norm=0.04))
     assert heldout_scores(params, scene, scene)["mesh_iou_mean"] is None  # no mesh given, no score
     r = heldout_scores(params, scene, scene, mesh=MeshCaster(mesh.vertices_mm, mesh.triangles))
     assert r["mesh_iou_mean"] > 0.7  # 80x60 px: the fused mesh loses a rim the surfels cover (0.81 vs 0.92)
@@ -124,7 +130,7 @@ def test_mesh_takes_the_init_depth_where_it_agrees(trained):
     scene, params = trained
     truth = np.stack([ray_cast(K, T, scene.height, scene.width, spheres_world(scene))[0]
                       for K, T in zip(scene.K, scene.world_to_cam)])
-    cfg = MeshConfig(voxel_norm=0.01, trunc_norm=0.04)
+    cfg = mesh_config(voxel_norm=0.01, trunc_norm=0.04)
     plain, info0 = mesh_from_surfels(params, scene, cfg)
     on = replace(cfg, init_depth_rel_tol=0.01)
     merged, info = mesh_from_surfels(params, scene, on, init_depths_mm=truth)
@@ -145,5 +151,5 @@ def test_mesh_stage_without_the_init_folder_is_refused_before_any_work(tmp_path)
 
     out = tmp_path / "mesh"
     with pytest.raises(ConfigError, match="--init-dir"):
-        mesh_surfels_dir(tmp_path / "scene", tmp_path / "surfels", out, MeshConfig(init_depth_rel_tol=0.002))
+        mesh_surfels_dir(tmp_path / "scene", tmp_path / "surfels", out, mesh_config(init_depth_rel_tol=0.002))
     assert not out.exists()

@@ -53,7 +53,7 @@ def test_scene_is_dark_and_wide(dark_wide):
 
 def test_dark_wide_baseline_gives_a_usable_cloud(dark_wide):
     root, scene = dark_wide
-    res = mvs.run(scene, InitConfig())
+    res = mvs.run(scene, InitConfig.default())
     assert res.info["warnings"] == []
     # 800x600: 58-70 % matched, 15-24 % consistent (the same views, bright: the same); 20 % of
     # each view sees a part no other view sees at these baselines. Scoring by the best source
@@ -76,7 +76,7 @@ def test_exposure_does_not_change_the_matches(dark_wide):
     assert scene.images[scene.masks].max() < 0.12
     gains = np.array([6.0, 8.0, 6.0], np.float32)[:, None, None, None]
     bright = dataclasses.replace(scene, images=scene.images * gains)
-    cfg = InitConfig()
+    cfg = InitConfig.default()
     a = mvs.sweep_view(scene, 1, cfg.mvs)
     b = mvs.sweep_view(bright, 1, cfg.mvs)
     assert a.valid[scene.masks[1]].mean() > 0.3 and np.mean(a.valid == b.valid) > 0.999
@@ -104,6 +104,6 @@ def test_failed_matching_is_reported(dark_wide, tmp_path, capsys):
     assert main(["init", "--scene", str(broken), "--out-dir", str(tmp_path / "init_broken")]) == 0
     out = capsys.readouterr().out
     info = json.loads((tmp_path / "init_broken" / "init.json").read_text())
-    assert info["consistent_fraction"][0] < InitConfig().mvs.warn_below_consistent
+    assert info["consistent_fraction"][0] < InitConfig.default().mvs.warn_below_consistent
     assert info["warnings"] and info["warnings"][0].startswith("view 6: only ")
     assert "WARNING: view 6: only " in out

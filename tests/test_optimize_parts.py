@@ -12,18 +12,20 @@ import torch
 
 from pipeline.config.optimize import DensifyConfig
 from pipeline.errors import ConfigError
-from pipeline.optimize import ops, terms
+from pipeline.losses import (
+    depth_normal_loss,
+    depth_to_normals,
+    flat_pixels,
+    mask_loss,
+    mvs_depth_loss,
+    normal_smoothness_loss,
+    ssim,
+)
+from pipeline.optimize import ops
 from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyStrategy, screen_grad_ndc
-from pipeline.optimize.surfels import (
-    SurfelInitError,
-    frames_from_normals,
-    init_params,
-    knn_scales,
-    ply_attribute_names,
-    read_surfel_ply,
-    write_surfel_ply,
-)
+from pipeline.optimize.seed import frames_from_normals, init_params, knn_scales
+from pipeline.surfels import SurfelInitError, ply_attribute_names, read_surfel_ply, write_surfel_ply
 from pipeline.geometry import rotmat_to_quat
 from pipeline.rasterizer.project import quat_to_rotmat
 
@@ -130,8 +132,8 @@ def test_strategy_clones_small_splits_large_and_respects_budget():
         params.log_scales[:3] = math.log(0.001)  # small -> clone
         params.log_scales[3:] = math.log(0.05)  # large -> split
     opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
-    st = DensifyStrategy(DensifyConfig(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0,
-                                       max_surfels=100))
+    st = DensifyStrategy(DensifyConfig.default(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0,
+                                               max_surfels=100))
     st.initialize(params.num)
     grad = torch.zeros(6, 2)
     grad[[0, 3], 0] = 1e-3  # NDC: 1e-3 * 400 / 2 = 0.2 > threshold
@@ -154,7 +156,7 @@ def test_strategy_prunes_transparent_but_never_everything():
     opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
     with torch.no_grad():
         params.opacity_logits[:] = -10.0
-    st = DensifyStrategy(DensifyConfig(start_iter=0, stop_iter=100, every=10, reset_every=0))
+    st = DensifyStrategy(DensifyConfig.default(start_iter=0, stop_iter=100, every=10, reset_every=0))
     st.initialize(5)
     done = st.step_post_update(params, opt, 10, torch.Generator())
     assert done["pruned"] == 4 and params.num == 1
@@ -182,9 +184,9 @@ def test_ssim_matches_slow_reference_and_has_gradients():
     rng = np.random.default_rng(0)
     a, b = rng.random((3, 9, 13)), rng.random((3, 9, 13))
     ta = torch.tensor(a, requires_grad=True)
-    assert abs(float(terms.ssim(ta.detach(), torch.tensor(b))) - _ssim_slow(a, b)) < 1e-10
-    assert abs(float(terms.ssim(torch.tensor(a), torch.tensor(a))) - 1.0) < 1e-12
-    assert torch.autograd.gradcheck(lambda x: terms.ssim(x, torch.tensor(b)), (ta,))
+    assert abs(float(ssim(ta.detach(), torch.tensor(b))) - _ssim_slow(a, b)) < 1e-10
+    assert abs(float(ssim(torch.tensor(a), torch.tensor(a))) - 1.0) < 1e-12
+    assert torch.autograd.gradcheck(lambda x: ssim(x, torch.tensor(b)), (ta,))
 
 
 def test_depth_to_normals_of_a_plane_faces_the_camera():
@@ -195,17 +197,17 @@ def test_depth_to_normals_of_a_plane_faces_the_camera():
     ys, xs = torch.meshgrid(torch.arange(24.0, dtype=torch.float64), torch.arange(32.0, dtype=torch.float64), indexing="ij")
     rays = torch.linalg.inv(K) @ torch.stack([xs, ys, torch.ones_like(xs)]).reshape(3, -1)
     z = (-2.0 / (n_true @ rays)).reshape(24, 32)
-    n = terms.depth_to_normals(z, K)
+    n = depth_to_normals(z, K)
     inner = n[:, 1:-1, 1:-1].reshape(3, -1)
     assert torch.allclose(inner, n_true[:, None].expand_as(inner), atol=1e-9)
     assert torch.all(n[:, 0] == 0) and torch.all(n[:, :, -1] == 0)
     z.requires_grad_(True)
     normal = n_true[:, None, None].expand(3, 24, 32).contiguous()
     alpha = torch.ones(24, 32, dtype=torch.float64)
-    loss = terms.depth_normal_loss(normal, z, alpha, K)
+    loss = depth_normal_loss(normal, z, alpha, K)
     assert float(loss.detach()) == pytest.approx(1 - (22 * 30) / (24 * 32), abs=1e-9)  # border pixels count 1
     small = z.detach()[:6, :7].clone().requires_grad_(True)
-    assert torch.autograd.gradcheck(lambda d: terms.depth_normal_loss(normal[:, :6, :7], d, alpha[:6, :7], K), (small,))
+    assert torch.autograd.gradcheck(lambda d: depth_normal_loss(normal[:, :6, :7], d, alpha[:6, :7], K), (small,))
 
 
 def test_depth_normal_loss_gradient_is_finite_where_the_normal_vanishes():
@@ -215,7 +217,7 @@ def test_depth_normal_loss_gradient_is_finite_where_the_normal_vanishes():
     depth = torch.zeros(6, 7, dtype=torch.float64, requires_grad=True)
     normal = torch.zeros(3, 6, 7, dtype=torch.float64)
     normal[2] = -1.0
-    loss = terms.depth_normal_loss(normal, depth, torch.ones(6, 7, dtype=torch.float64), K)
+    loss = depth_normal_loss(normal, depth, torch.ones(6, 7, dtype=torch.float64), K)
     loss.backward()
     assert float(loss.detach()) == 1.0 and torch.isfinite(depth.grad).all()
 
@@ -223,7 +225,7 @@ def test_depth_normal_loss_gradient_is_finite_where_the_normal_vanishes():
 def test_mask_loss():
     alpha = torch.tensor([[0.2, 0.9]], requires_grad=True)
     mask = torch.tensor([[False, True]])
-    assert float(terms.mask_loss(alpha, mask).detach()) == pytest.approx((0.2 + 0.1) / 2)
+    assert float(mask_loss(alpha, mask).detach()) == pytest.approx((0.2 + 0.1) / 2)
 
 
 @pytest.mark.parametrize("bad, match", [
@@ -236,7 +238,7 @@ def test_mask_loss():
 ])
 def test_densify_config_refuses_values_that_break_the_strategy(bad, match):
     with pytest.raises(ConfigError, match=match):
-        DensifyConfig(**bad)
+        DensifyConfig.default(**bad)
 
 
 def test_split_factor_sets_the_children_scale():
@@ -261,10 +263,10 @@ def test_mvs_depth_loss_matches_a_loop_and_gradcheck():
     valid = (mvs > 0) & torch.tensor(rng.random((5, 6)) < 0.8)
     ref = [abs(float(depth.detach()[y, x]) - float(mvs[y, x])) / float(mvs[y, x])
            for y in range(5) for x in range(6) if valid[y, x]]
-    assert float(terms.mvs_depth_loss(depth, mvs, valid).detach()) == pytest.approx(sum(ref) / len(ref), rel=1e-12)
-    assert torch.autograd.gradcheck(lambda d: terms.mvs_depth_loss(d + 1e-3, mvs, valid), (depth,))
-    assert float(terms.mvs_depth_loss(mvs.clone().requires_grad_(True), mvs, valid).detach()) == 0.0
-    none = terms.mvs_depth_loss(depth, mvs, torch.zeros_like(valid))
+    assert float(mvs_depth_loss(depth, mvs, valid).detach()) == pytest.approx(sum(ref) / len(ref), rel=1e-12)
+    assert torch.autograd.gradcheck(lambda d: mvs_depth_loss(d + 1e-3, mvs, valid), (depth,))
+    assert float(mvs_depth_loss(mvs.clone().requires_grad_(True), mvs, valid).detach()) == 0.0
+    none = mvs_depth_loss(depth, mvs, torch.zeros_like(valid))
     assert float(none.detach()) == 0.0 and none.requires_grad
 
 
@@ -330,9 +332,9 @@ def test_normal_smoothness_matches_a_loop_and_gradcheck():
     n = torch.randn(3, 6, 7, dtype=torch.float64, generator=g).requires_grad_(True)
     img = torch.rand(3, 6, 7, dtype=torch.float64, generator=g)
     valid = torch.rand(6, 7, generator=g) > 0.3
-    got = terms.normal_smoothness_loss(n, img, valid, 10.0)
+    got = normal_smoothness_loss(n, img, valid, 10.0)
     assert torch.allclose(got, _smoothness_loop(n, img, valid, 10.0), rtol=1e-12, atol=1e-14)
-    assert torch.autograd.gradcheck(lambda t: terms.normal_smoothness_loss(t, img, valid, 10.0), (n,))
+    assert torch.autograd.gradcheck(lambda t: normal_smoothness_loss(t, img, valid, 10.0), (n,))
 
 
 def test_normal_smoothness_spares_image_edges_and_ignores_length():
@@ -345,11 +347,11 @@ def test_normal_smoothness_spares_image_edges_and_ignores_length():
     flat = torch.full((3, 4, 6), 0.5, dtype=torch.float64)
     edge = flat.clone()
     edge[:, :, 3:] = 1.0
-    on_flat = terms.normal_smoothness_loss(n, flat, valid, 10.0)
+    on_flat = normal_smoothness_loss(n, flat, valid, 10.0)
     assert on_flat > 0
-    assert terms.normal_smoothness_loss(n, edge, valid, 10.0) < 0.01 * on_flat
-    assert torch.allclose(terms.normal_smoothness_loss(3.0 * n, flat, valid, 10.0), on_flat)
-    assert terms.normal_smoothness_loss(n, flat, torch.zeros_like(valid), 10.0) == 0
+    assert normal_smoothness_loss(n, edge, valid, 10.0) < 0.01 * on_flat
+    assert torch.allclose(normal_smoothness_loss(3.0 * n, flat, valid, 10.0), on_flat)
+    assert normal_smoothness_loss(n, flat, torch.zeros_like(valid), 10.0) == 0
 
 
 def _flat_loop(image: torch.Tensor, max_std: float, window: int) -> torch.Tensor:
@@ -370,6 +372,6 @@ def test_flat_pixels_matches_a_pixel_loop_and_finds_the_flat_half():
     img[:, :, :6] = 0.5 + 0.001 * img[:, :, :6]  # a nearly flat left part
     for max_std in (0.005, 0.03, 0.08):
         for window in (3, 5):
-            assert torch.equal(terms.flat_pixels(img, max_std, window), _flat_loop(img, max_std, window))
-    flat = terms.flat_pixels(img, 0.005)
+            assert torch.equal(flat_pixels(img, max_std, window), _flat_loop(img, max_std, window))
+    flat = flat_pixels(img, 0.005)
     assert flat[:, :4].all() and not flat[:, 8:].any()

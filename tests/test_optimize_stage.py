@@ -31,7 +31,7 @@ def stage_inputs(tmp_path_factory):
     write_ply(root / "init" / "points.ply", cloud)
     params = load_params(REPO / "params.yaml")
     params["optimize"].update(iterations=10, checkpoint_every=4, init_voxel_norm=0.0, downscale=[[0.0, 1]],
-                              start={"gcf": 0, "nor": 0, "d": 3, "dn": 6})
+                              start={"gcf": 0, "nor": 0, "d": 3, "dn": 6, "mv": 7000})
     params["optimize"]["densify"].update(start_iter=3, stop_iter=8, every=3)
     params["mesh"]["init_depth_rel_tol"] = 0.0  # a cloud without depth maps: nothing for the mesh to merge
     (root / "params.yaml").write_text(yaml.safe_dump(params))

@@ -14,7 +14,7 @@ from pipeline import geometry
 from pipeline.errors import ConfigError, DegenerateResultError
 from pipeline.init.io import PointCloud
 from pipeline.optimize import NonFiniteLossError, SurfelInitError, budget_downsample, init_from_cloud, make_views, train
-from pipeline.optimize.surfels import init_params
+from pipeline.optimize.seed import init_params
 from pipeline.optimize.train import Trainer
 from pipeline.priors.io import FeaturePrior, NormalPrior, features_path, normals_path, read_features, read_normals, write_features, write_normals
 from pipeline.runs.optimize import timing_report
@@ -283,8 +283,6 @@ def test_a_crop_keeps_the_rest_of_the_remembered_source_depth(problem):
 def test_flat_pixels_are_computed_once_per_view_and_size_on_the_whole_view(problem, monkeypatch):
     import sys
 
-    from pipeline.optimize import terms
-
     train_module = sys.modules["pipeline.optimize.train"]
     scene, cloud, priors = problem
     cfg, loss = tiny_config()
@@ -292,8 +290,8 @@ def test_flat_pixels_are_computed_once_per_view_and_size_on_the_whole_view(probl
     views = make_views(scene, priors, cfg, loss)
     trainer = Trainer(init_from_cloud(cloud, scene, cfg), views, cfg, loss)
     calls = []
-    real = terms.flat_pixels
-    monkeypatch.setattr(terms, "flat_pixels", lambda *a, **k: calls.append(1) or real(*a, **k))
+    real = train_module.flat_pixels
+    monkeypatch.setattr(train_module, "flat_pixels", lambda *a, **k: calls.append(1) or real(*a, **k))
     full = views.at(0, 1)
     expected = real(train_module.masked_target(full, cfg.background), 0.05)
     assert 0 < int(expected.sum()) < expected.numel()  # the test image has flat and textured pixels
@@ -309,11 +307,11 @@ def test_flat_pixels_are_computed_once_per_view_and_size_on_the_whole_view(probl
 @pytest.mark.parametrize("textured", [False, True])
 def test_mv_points_are_drawn_among_textured_pixels_when_asked(problem, monkeypatch, textured):
     """optimize.mv_textured_points: L_mv's reference pixels are the surface pixels within the
-    incidence limit, cut to those whose reference patch is textured (mvphoto.textured_pixels,
+    incidence limit, cut to those whose reference patch is textured (losses.multiview.textured_pixels,
     computed once per view and size); off, every such pixel (the rule before it)."""
     import sys
 
-    from pipeline import mvphoto
+    from pipeline.losses import multiview
 
     train_module = sys.modules["pipeline.optimize.train"]
     scene, cloud, priors = problem
@@ -329,7 +327,7 @@ def test_mv_points_are_drawn_among_textured_pixels_when_asked(problem, monkeypat
     surface[:, : w // 4] = False
     seen, calls = [], []
     monkeypatch.setattr(train_module, "multiview_consistency", lambda d, n, pixels, *a, **k: seen.append(pixels))
-    real = mvphoto.textured_pixels
+    real = multiview.textured_pixels
     monkeypatch.setattr(train_module, "textured_pixels", lambda *a, **k: calls.append(1) or real(*a, **k))
     for _ in range(2):
         trainer._multiview(0, full.K, depth, normal, surface)

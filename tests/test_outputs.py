@@ -17,7 +17,8 @@ from pipeline.atomic import MARKER, atomic_dir
 from pipeline.data import dtu
 from pipeline.init.io import PointCloud, write_ply
 from pipeline.runs.optimize import default_side_paths
-from pipeline.optimize.surfels import init_params, write_surfel_ply
+from pipeline.optimize.seed import init_params
+from pipeline.surfels import write_surfel_ply
 from test_atomic import tree_digest
 
 REPO = Path(__file__).resolve().parents[1]

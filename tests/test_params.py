@@ -81,9 +81,10 @@ def test_section_applies_overrides_before_validation():
     for bad in (-0.01, float("nan")):
         with pytest.raises(ConfigError, match="loss.lambda_smooth, smooth_gamma and smooth_max_std must be finite and >= 0"):
             section(LossConfig, "loss", params, {"smooth_max_std": bad})
-    for bad in (-1, 1.5):
-        with pytest.raises(ConfigError, match="loss.mv_best_sources must be an int >= 0"):
-            section(LossConfig, "loss", params, {"mv_best_sources": bad})
+    with pytest.raises(ConfigError, match="loss.mv_best_sources must be an int >= 0"):
+        section(LossConfig, "loss", params, {"mv_best_sources": -1})
+    with pytest.raises(ConfigError, match="loss.mv_best_sources must be an integer, got 1.5"):  # from_dict's type check
+        section(LossConfig, "loss", params, {"mv_best_sources": 1.5})
     for bad in (0.0, 2.5, float("nan")):
         with pytest.raises(ConfigError, match=r"loss.mv_max_cost must be in \(0, 2\]"):
             section(LossConfig, "loss", params, {"mv_max_cost": bad})

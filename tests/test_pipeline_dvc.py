@@ -35,7 +35,7 @@ def tiny_repo(tmp_path_factory) -> Path:
     params["synth"].update(scenes=["synth_relief"], width=160, height=120)
     params["data"].update(width=160, height=120)
     params["optimize"].update(iterations=12, checkpoint_every=5, init_voxel_norm=0.02,
-                              downscale=[[0.0, 2], [0.5, 1]], start={"gcf": 0, "nor": 0, "d": 4, "dn": 8})
+                              downscale=[[0.0, 2], [0.5, 1]], start={"gcf": 0, "nor": 0, "d": 4, "dn": 8, "mv": 7000})
     params["optimize"]["densify"].update(start_iter=4, stop_iter=10, every=4)
     # Two ablation variants, so that a change to one shows which cells rerun.
     params["ablation"]["variants"]["no_priors"] = {"init": "mvs", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0}}
@@ -56,8 +56,8 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     first = _dvc(tiny_repo, "repro")
     for stage in ("synth@synth_relief", "prepare@synth_relief", "init@synth_relief", "priors@synth_relief",
                   "baseline@synth_relief", "prepare@scan24", "init@scan24", "baseline@scan24", "baseline-report",
-                  "optimize@synth_relief", "mesh@synth_relief", "evaluate@synth_relief", "optimize@scan24",
-                  "mesh@scan24", "evaluate@scan24", "variant-train@synth_relief-baseline_2dgs",
+                  "optimize@synth_relief", "mesh@synth_relief", "score@synth_relief", "optimize@scan24",
+                  "mesh@scan24", "score@scan24", "variant-train@synth_relief-baseline_2dgs",
                   "variant-score@synth_relief-baseline_2dgs", "variant-train@synth_relief-no_priors",
                   "variant-score@synth_relief-no_priors", "limit@synth_relief", "table1", "table2"):
         assert f"Running stage '{stage}'" in first
@@ -114,7 +114,7 @@ def test_repro_runs_then_does_nothing_then_reruns_only_what_changed(tiny_repo):
     backend.write_text(original + "\n# an edit\n")
     status = _dvc(tiny_repo, "status")
     assert "init@scan24" in status and "baseline@scan24" in status
-    for stage in ("priors@scan24", "optimize@scan24", "mesh@scan24", "evaluate@scan24", "renders@scan24",
+    for stage in ("priors@scan24", "optimize@scan24", "mesh@scan24", "score@scan24", "renders@scan24",
                   "variant-train@synth_relief-no_priors", "variant-score@synth_relief-no_priors"):
         assert stage not in status, stage
     backend.write_text(original)

@@ -15,7 +15,7 @@ K = np.array([[120.0, 0.0, 51.3], [0.0, 118.0, 36.8], [0.0, 0.0, 1.0]])
 # Closer-up camera for the depth-based estimator: the sphere spans ~65 px, 2.4 mm/px.
 K_NEAR = np.array([[250.0, 0.0, 51.3], [0.0, 245.0, 36.8], [0.0, 0.0, 1.0]])
 BACKGROUND_Z = 900.0
-UNSMOOTHED = PriorsConfig(normal_smooth_sigma_px=0)
+UNSMOOTHED = PriorsConfig.default(normal_smooth_sigma_px=0)
 
 
 def sphere_gt(K=K):
@@ -61,7 +61,7 @@ def test_smoothing_reduces_noise_and_invalid_pixels_are_excluded():
     valid = np.ones_like(hit)
     valid[30:34, 40:44] = False  # a hole in the depth map
     raw, ok_raw = normals_from_depth(noisy, valid, K_NEAR, UNSMOOTHED)
-    smooth, ok = normals_from_depth(noisy, valid, K_NEAR, PriorsConfig(normal_smooth_sigma_px=1.5, normal_smooth_sigma_mm=3.0))
+    smooth, ok = normals_from_depth(noisy, valid, K_NEAR, PriorsConfig.default(normal_smooth_sigma_px=1.5, normal_smooth_sigma_mm=3.0))
     m = hit & ok & ok_raw
     assert m.sum() > 0.8 * hit.sum()
     assert np.median(angle_deg(smooth[m], n_gt[m])) < 0.7 * np.median(angle_deg(raw[m], n_gt[m]))
@@ -69,7 +69,7 @@ def test_smoothing_reduces_noise_and_invalid_pixels_are_excluded():
     assert not ok[30:34, 38:46].any() and not ok[28:36, 40:44].any()
     assert np.all(smooth[~ok] == 0)
     with pytest.raises(NormalError, match="no valid depth"):
-        normals_from_depth(depth, np.zeros_like(hit), K, PriorsConfig())
+        normals_from_depth(depth, np.zeros_like(hit), K, PriorsConfig.default())
 
 
 def test_dsine_padding_and_sign_convention(tmp_path):
@@ -96,7 +96,7 @@ def test_rendered_mesh_normals_share_the_convention():
     camera like the analytic ones."""
     import open3d as o3d
 
-    from pipeline.meshing.raycast import MeshCaster
+    from pipeline.raycast import MeshCaster
 
     mesh = o3d.geometry.TriangleMesh.create_sphere(SPHERE_RADIUS, resolution=80)
     mesh.translate(SPHERE_CENTRE_CAM)

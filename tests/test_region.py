@@ -13,6 +13,12 @@ from pipeline.errors import ConfigError
 from pipeline.meshing import region as bounding, tsdf
 
 
+def mesh_config(**changes) -> MeshConfig:
+    """conf/'s mesh settings with those these tests were written with where conf/ has others
+    (2DGS's voxel 0.004, no init depth, no hole closing)."""
+    return MeshConfig.default(voxel_norm=0.004, init_depth_rel_tol=0.0, fill_holes_norm=0.0, **changes)
+
+
 def _table_scene(width=160, height=120):
     """Depth maps (mm) of a sphere sunk past its equator into an unbounded plane (a cap:
     its base, where it meets the plane, is in view of the cameras above), and (plane,
@@ -64,7 +70,7 @@ def test_ransac_recovers_a_noisy_plane_among_outliers():
 
 def test_table_is_found_above_which_the_cameras_are(table):
     scene, depths, plane, _ = table
-    voxel, _ = MeshConfig().sizes_mm(scene.norm_scale_mm)
+    voxel, _ = mesh_config().sizes_mm(scene.norm_scale_mm)
     region, facts = bounding.region_for_depths(depths, scene.K, scene.world_to_cam, scene.norm_to_world, voxel,
                                                0.15, 2.0)
     assert region.plane is not None, facts
@@ -75,7 +81,7 @@ def test_table_is_found_above_which_the_cameras_are(table):
 
 def test_cut_keeps_the_object_and_drops_the_table_like_a_per_pixel_reference(table):
     scene, depths, plane, (centre, radius) = table
-    cfg = MeshConfig()
+    cfg = mesh_config()
     cut, region, facts = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world, cfg,
                                                 masked=False)
     assert region is not None and facts["region"]["depth_pixels_cut"] > 0
@@ -101,7 +107,7 @@ def test_cut_keeps_the_object_and_drops_the_table_like_a_per_pixel_reference(tab
 
 def test_footprint_cuts_floaters_beside_the_object_not_above_it(table):
     scene, depths, plane, (centre, radius) = table
-    cut, region, _ = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world, MeshConfig(),
+    cut, region, _ = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world, mesh_config(),
                                             masked=False)
     up = plane[:3]
     side = np.cross(up, [1.0, 0.0, 0.0])
@@ -113,7 +119,7 @@ def test_footprint_cuts_floaters_beside_the_object_not_above_it(table):
 
 def test_fused_without_the_region_the_table_is_meshed_and_with_it_not(table):
     scene, depths, _, (centre, radius) = table
-    cfg = MeshConfig()
+    cfg = mesh_config()
     voxel, trunc = cfg.sizes_mm(scene.norm_scale_mm)
     cut, region, _ = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world, cfg, False)
     kept = []
@@ -130,19 +136,19 @@ def test_fused_without_the_region_the_table_is_meshed_and_with_it_not(table):
 def test_masked_depth_is_left_alone_unless_asked(table):
     scene, depths, _, _ = table
     same, region, facts = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world,
-                                                 MeshConfig(), masked=True)
+                                                 mesh_config(), masked=True)
     assert region is None and same is depths and facts == {"region": None}
     off, region, _ = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world,
-                                            MeshConfig(region="off"), masked=False)
+                                            mesh_config(region="off"), masked=False)
     assert region is None and off is depths
     on, region, _ = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world,
-                                           MeshConfig(region="on"), masked=True)
+                                           mesh_config(region="on"), masked=True)
     assert region is not None and (on > 0).sum() < (depths > 0).sum()
 
 
 def test_no_plane_without_a_table_and_none_between_the_cameras():
     scene, depths = make_scene(160, 120)
-    voxel, _ = MeshConfig().sizes_mm(scene.norm_scale_mm)
+    voxel, _ = mesh_config().sizes_mm(scene.norm_scale_mm)
     region, facts = bounding.region_for_depths(depths, scene.K, scene.world_to_cam, scene.norm_to_world, voxel,
                                                0.15, 2.0)
     assert region.plane is None and facts["plane_share"] < 0.15
@@ -154,6 +160,6 @@ def test_no_plane_without_a_table_and_none_between_the_cameras():
 
 def test_bad_region_settings_are_refused():
     with pytest.raises(ConfigError, match="mesh.region"):
-        MeshConfig(region="sphere")
+        MeshConfig.default(region="sphere")
     with pytest.raises(ConfigError, match="region_plane_share"):
-        MeshConfig(region_plane_share=0.0)
+        MeshConfig.default(region_plane_share=0.0)

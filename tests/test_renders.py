@@ -16,9 +16,10 @@ from pipeline.data import dtu
 from pipeline.data.scene import SceneError
 from pipeline.errors import MissingInputError
 from pipeline.evaluation import gt
-from pipeline.optimize.surfels import init_params, write_surfel_ply
+from pipeline.optimize.seed import init_params
 from pipeline.reports import renders
 from pipeline.reports.renders import BOTH, EXTRA, MISSED, NEITHER
+from pipeline.surfels import write_surfel_ply
 
 W, H = 100, 75
 K = np.array([[100.0, 0, 50], [0, 100.0, 37], [0, 0, 1]])

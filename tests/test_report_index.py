@@ -13,7 +13,8 @@ from pipeline.errors import MissingInputError
 from pipeline.evaluation import gt
 from pipeline.reports.renders import scene_panels, write_png
 from pipeline.reports.index import index_markdown
-from pipeline.optimize.surfels import init_params, write_surfel_ply
+from pipeline.optimize.seed import init_params
+from pipeline.surfels import write_surfel_ply
 
 LABEL_ROWS = 16  # the panels' text labels
 

@@ -1,12 +1,14 @@
 """Ablation variants: a variant's partial sections merge over the main params, are
 validated like params values, and bad definitions fail with a message naming them."""
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import pytest
 
 from pipeline.config.ablation import AblationConfig
 from pipeline.config.loss import LossConfig
+from pipeline.config.mesh import MeshConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import merged_section, section
 from pipeline.config.variants import variant_configs
@@ -14,11 +16,19 @@ from pipeline.errors import ConfigError, InputError
 
 REPO = Path(__file__).resolve().parents[1]
 
+NO_SWEEP = {"scenes": [], "cells": []}  # ablation.speed_accuracy without cells
+
+# Complete main sections (a params file gives every key): conf/'s defaults with the values these
+# tests set and, where conf/ has others, those they were written with: L_mv, L_mvgeo and the
+# adaptive NCC off, L_mv's points among every surface pixel (the dataclass defaults before issue 60).
 BASE = {
-    "optimize": {"iterations": 500, "lr": {"means_final": 1.6e-4}, "densify": {"every": 100, "max_surfels": 1000}, "photo_reset": {"enabled": True}},
-    "loss": {"lambda_gcf": 2.0, "lambda_nor": 0.25, "lambda_smooth": 0.1, "mv_max_cost": 0.5},
-    "mesh": {"depth": "median", "init_depth_rel_tol": 0.002},
-    "ablation": {"run": ["plain"], "variants": {"plain": {"init": "sfm", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0,
+    "optimize": asdict(OptimizeConfig.default(iterations=500, lr={"means_final": 1.6e-4},
+                                              densify={"every": 100, "max_surfels": 1000}, photo_reset={"enabled": True},
+                                              mv_textured_points=False)),
+    "loss": asdict(LossConfig.default(lambda_gcf=2.0, lambda_nor=0.25, lambda_smooth=0.1, mv_max_cost=0.5,
+                                      lambda_mv=0.0, lambda_mvgeo=0.0, mv_ncc_gamma=0.0)),
+    "mesh": asdict(MeshConfig.default(depth="median", init_depth_rel_tol=0.002)),
+    "ablation": {"run": ["plain"], "speed_accuracy": NO_SWEEP, "variants": {"plain": {"init": "sfm", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0,
                                                                                              "lambda_smooth": 0.0, "mv_max_cost": 2.0},
                                                           "optimize": {"densify": {"every": 50}, "lr": {"means_final": 1.6e-6},
                                                                        "photo_reset": {"enabled": False}},
@@ -46,18 +56,19 @@ def test_variant_change_is_validated_like_params():
 
 def test_bad_ablation_definitions_are_named():
     with pytest.raises(ConfigError, match=r"undefined variant\(s\) \['nope'\]"):
-        AblationConfig(run=["nope"], variants={})
+        AblationConfig.default(run=["nope"], variants={}, speed_accuracy=NO_SWEEP)
     with pytest.raises(ConfigError, match="init must be one of"):
-        AblationConfig(run=[], variants={"x": {"init": "colmap"}})
+        AblationConfig.default(run=[], variants={"x": {"init": "colmap"}}, speed_accuracy=NO_SWEEP)
     with pytest.raises(ConfigError, match="ablation.variants.x"):
-        AblationConfig(run=[], variants={"x": {"lr": 1}})
+        AblationConfig.default(run=[], variants={"x": {"lr": 1}}, speed_accuracy=NO_SWEEP)
     with pytest.raises(ConfigError, match=r"ablation.variants.x_seed1: a seed replicate must be 'x' with only "
                                           r"optimize.seed: 1 added"):
-        AblationConfig(run=[], variants={"x": {"init": "sfm"}, "x_seed1": {"optimize": {"seed": 1}}})
+        AblationConfig.default(run=[], variants={"x": {"init": "sfm"}, "x_seed1": {"optimize": {"seed": 1}}},
+                               speed_accuracy=NO_SWEEP)
     with pytest.raises(ConfigError, match="a seed replicate of 'y', which is not defined"):
-        AblationConfig(run=[], variants={"y_seed2": {"optimize": {"seed": 2}}})
-    AblationConfig(run=[], variants={"x": {"init": "sfm"}, "x_seed1": {"init": "sfm", "optimize": {"seed": 1}},
-                                     "full_seed3": {"optimize": {"seed": 3}}})
+        AblationConfig.default(run=[], variants={"y_seed2": {"optimize": {"seed": 2}}}, speed_accuracy=NO_SWEEP)
+    AblationConfig.default(run=[], variants={"x": {"init": "sfm"}, "x_seed1": {"init": "sfm", "optimize": {"seed": 1}},
+                                             "full_seed3": {"optimize": {"seed": 3}}}, speed_accuracy=NO_SWEEP)
     with pytest.raises(ConfigError, match="'missing' is not defined"):
         variant_configs(BASE, "missing")
 
@@ -148,7 +159,7 @@ def test_table2_seed_replicates_give_mean_and_spread(tmp_path):
 
     assert seed_groups(["a", "full_seed1", "a_seed1", "b_seed2"]) == {
         "a": ["a", "a_seed1"], "full": ["full_seed1"], "b": ["b_seed2"]}
-    params = {**BASE, "ablation": {"run": ["plain", "plain_seed1", "full_seed1", "full_seed2"], "variants": {
+    params = {**BASE, "ablation": {"run": ["plain", "plain_seed1", "full_seed1", "full_seed2"], "speed_accuracy": NO_SWEEP, "variants": {
         **BASE["ablation"]["variants"], "plain_seed1": {"init": "sfm", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0,
                                                                                     "lambda_smooth": 0.0, "mv_max_cost": 2.0},
                                                            "optimize": {"densify": {"every": 50}, "lr": {"means_final": 1.6e-6}, "seed": 1,

@@ -12,7 +12,17 @@ folder is removed and the old output is untouched. Temporary folders a killed ru
 behind are removed by the next writer of the same output.
 
 A file output (:func:`atomic_file`) is written to a temporary sibling and renamed over the
-target; it refuses a target that is a folder or one of the inputs.
+target. :func:`check_output_file` refuses, before any work, a target that is a folder, an
+input or inside an input folder, or an existing non-empty file gcgs did not write: gcgs
+knows its files by the extended attribute ``user.gcgs.output`` it sets on each (their bytes
+stay what the writer wrote). Both checks also make sure the output can be created and
+swapped into place (a writable folder, not a mount point), so a long run never ends in a
+traceback at its last step.
+
+Rerunning into an earlier output folder never deletes what a user added there: every file
+of a finished output carries the same mark, and entries of the old folder without it that
+the new run does not replace are moved to a sibling ``NAME.kept-*`` folder, with a warning
+that says where.
 """
 from __future__ import annotations
 
@@ -23,14 +33,16 @@ import json
 import os
 import shutil
 import tempfile
+import time
 from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
-from pipeline.errors import OutputError
+from pipeline.errors import OutputError, print_warning
 
 MARKER = ".gcgs-output"  # in every finished output folder: JSON {"written_by": "gcgs", "kind": KIND}
 PARTIAL = ".gcgs-partial"  # in a temporary folder until it is swapped in
+FILE_XATTR = "user.gcgs.output"  # on every file gcgs writes, its kind: lets a later run replace it
 
 
 def _resolved(path: str | Path) -> Path:
@@ -69,6 +81,10 @@ def check_output_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path
                               "writing it would destroy the input: choose another output folder")
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise OutputError(f"{out_dir}: output path exists and is not a folder; remove it or choose another path")
+    if out.is_dir() and os.path.ismount(out):
+        raise OutputError(f"{out_dir}: output folder is a mount point; a finished output is renamed into place, "
+                          "which a mount point refuses: give a folder inside it")
+    check_creatable(out, out_dir)
     if out.is_dir() and any(out.iterdir()):
         found = marker_kind(out)
         if found is None:
@@ -146,6 +162,47 @@ def _clean_leftovers(out: Path) -> None:
             shutil.rmtree(p, ignore_errors=True)
 
 
+def _holds_marked(folder: Path) -> bool:
+    return any(written_kind(Path(d) / f) is not None for d, _, files in os.walk(folder) for f in files)
+
+
+def _foreign_entries(old: Path, new: Path) -> list[Path]:
+    """Entries of the earlier output ``old`` that gcgs did not write (no mark) and that the
+    new output ``new`` does not replace: a user's notes, edits, extra files and folders."""
+    foreign: list[Path] = []
+    for dirpath, dirnames, filenames in os.walk(old):
+        rel = Path(dirpath).relative_to(old)
+        for name in list(dirnames):
+            sub = old / rel / name
+            if sub.is_symlink() or not ((new / rel / name).is_dir() or _holds_marked(sub)):
+                foreign.append(rel / name)  # kept whole
+                dirnames.remove(name)
+        for name in filenames:
+            if rel == Path(".") and name in (MARKER, PARTIAL):
+                continue
+            if written_kind(old / rel / name) is None and not (new / rel / name).is_file():
+                foreign.append(rel / name)
+    return foreign
+
+
+def _keep_foreign(old: Path, new: Path, shown: str | Path) -> None:
+    """Move :func:`_foreign_entries` to a sibling ``NAME.kept-*`` folder, so that replacing
+    the output never deletes them; warn with the list and the place."""
+    foreign = _foreign_entries(old, new)
+    if not foreign:
+        return
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    kept = Path(tempfile.mkdtemp(prefix=f"{old.name}.kept-{stamp}-", dir=old.parent))
+    os.chmod(kept, 0o755)
+    for rel in foreign:
+        (kept / rel).parent.mkdir(parents=True, exist_ok=True)
+        os.replace(old / rel, kept / rel)
+    names = ", ".join(str(r) + ("/" if (kept / r).is_dir() else "") for r in foreign[:8])
+    more = f" and {len(foreign) - 8} more" if len(foreign) > 8 else ""
+    print_warning(f"{shown}: {len(foreign)} entries gcgs did not write were moved to {kept} (not deleted): "
+                  f"{names}{more}")
+
+
 def _swap_in(tmp: Path, out: Path) -> None:
     if not out.exists():
         os.replace(tmp, out)
@@ -187,8 +244,13 @@ def atomic_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path | Non
             (tmp / PARTIAL).touch()
             yield tmp
             os.chmod(tmp, 0o755)  # mkdtemp creates 0700
+            for d, _, files in os.walk(tmp):  # a rerun deletes these, and keeps anything else
+                for f in files:
+                    _mark_written(Path(d) / f, kind)
             (tmp / MARKER).write_text(json.dumps({"written_by": "gcgs", "kind": kind}) + "\n")
             (tmp / PARTIAL).unlink()
+            if out.is_dir():
+                _keep_foreign(out, tmp, out_dir)
             _swap_in(tmp, out)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -197,24 +259,77 @@ def atomic_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path | Non
         lock.__exit__()
 
 
-def check_output_file(path: str | Path, inputs: Iterable[str | Path | None] = ()) -> Path:
-    """Refuse (one line) an output file path that is a folder or one of ``inputs``."""
+def check_creatable(out: Path, shown: str | Path) -> None:
+    """Refuse (one line) an output path whose folder cannot be created or written: a file
+    where a folder is needed, or no permission. Tried for real (a probe file created and
+    removed in the nearest existing folder), so read-only mounts fail here too, root or not."""
+    folder = out.parent
+    while not folder.exists() and not folder.is_symlink():
+        folder = folder.parent
+    if not folder.is_dir():
+        raise OutputError(f"{shown}: cannot create the output: {folder} is a file, not a folder")
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".gcgs-probe-", dir=folder)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as exc:
+        raise OutputError(f"{shown}: cannot write the output in {folder} ({exc.strerror or exc})") from None
+
+
+def written_kind(path: str | Path) -> str | None:
+    """The kind gcgs recorded on a file it wrote (:data:`FILE_XATTR`), ``None`` for any other."""
+    try:
+        return os.getxattr(path, FILE_XATTR).decode()
+    except (OSError, AttributeError, UnicodeDecodeError):
+        return None
+
+
+def _mark_written(path: str | Path, kind: str) -> None:
+    try:
+        os.setxattr(path, FILE_XATTR, kind.encode())
+    except (OSError, AttributeError):
+        pass  # no user attributes on this file system: a rerun then refuses to replace the file
+
+
+def check_output_file(path: str | Path, inputs: Iterable[str | Path | None] = (), kind: str = "file") -> Path:
+    """Refuse (:class:`OutputError`, one line) an output file path whose writing could lose
+    data or fail late: a folder, an input or a path inside an input folder, an existing
+    non-empty file that gcgs did not write (or wrote as another ``kind``), a mount point, or
+    a place that cannot be written. Cheap: stages call it before any long work."""
     out = _resolved(path)
     if out.is_dir():
         raise OutputError(f"{path}: output file path is a folder; give a file name")
     for given in inputs:
-        if given is not None and _resolved(given) == out:
+        if given is None:
+            continue
+        src = _resolved(given)
+        if out == src:
             raise OutputError(f"{path}: output file is the input {given}; writing it would destroy the input")
+        if _within(out, src):
+            raise OutputError(f"{path}: output file lies inside the input folder {given}; "
+                              "writing it would change the input: choose a path outside it")
+    if out.is_file() and out.stat().st_size > 0:
+        found = written_kind(out)
+        if found is None:
+            raise OutputError(f"{path}: file exists and was not written by gcgs; refusing to overwrite it: "
+                              "choose another path or remove it yourself")
+        if found != kind:
+            raise OutputError(f"{path}: file holds a gcgs {found}, not a {kind}; refusing to overwrite it: "
+                              "choose another path")
+    if os.path.ismount(out):
+        raise OutputError(f"{path}: output file is a mount point; choose a path inside a folder")
+    check_creatable(out, path)
     return out
 
 
 @contextmanager
 def atomic_file(path: str | Path, suffix: str | None = None,
-                inputs: Iterable[str | Path | None] = ()) -> Iterator[Path]:
-    """Yield a temporary file path; it becomes ``path`` when the block succeeds.
-    ``suffix`` (default: ``path``'s) keeps writers that infer the format from it happy."""
+                inputs: Iterable[str | Path | None] = (), kind: str = "file") -> Iterator[Path]:
+    """Yield a temporary file path; it becomes ``path`` (marked as a gcgs ``kind``) when the
+    block succeeds. ``suffix`` (default: ``path``'s) keeps writers that infer the format
+    from it happy."""
     path = Path(path)
-    check_output_file(path, inputs)
+    check_output_file(path, inputs, kind)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=path.suffix if suffix is None else suffix,
@@ -225,6 +340,7 @@ def atomic_file(path: str | Path, suffix: str | None = None,
     try:
         yield Path(tmp)
         os.chmod(tmp, 0o644)  # mkstemp creates 0600
+        _mark_written(tmp, kind)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -72,14 +72,14 @@ def run_cell(params: dict, scene: str, stage: str, out_dir: Path, repo: Path) ->
         _run([dvc, "cache", "dir", "--local", cache], cell)
         (cell / "params.yaml").write_text(dump_params(params))
         (out_dir / "params.yaml").write_text(dump_params(params))
-        # The committed metrics are not this cell's: only the evaluate stage may write them back.
+        # The committed metrics are not this cell's: only the score stage may write them back.
         metrics = cell / "reports" / "metrics" / f"{scene}.json"
         metrics.unlink(missing_ok=True)
         # The stages' `gcgs` must import the worktree's code, not an installed or PYTHONPATH copy.
         env = os.environ | {"PYTHONPATH": str(cell / "src")}
         log = _run([dvc, "repro", f"{stage}@{scene}"], cell, env)
         (out_dir / "dvc_repro.log").write_text(log)
-        if not metrics.is_file():  # a stage upstream of evaluate
+        if not metrics.is_file():  # a stage upstream of score
             return {}
         shutil.copy(metrics, out_dir / "metrics.json")
         return SceneMetrics.read(metrics).to_json()

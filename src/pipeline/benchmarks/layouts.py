@@ -46,7 +46,7 @@ import numpy as np
 from pipeline import atomic, geometry
 from pipeline.data import dtu, export
 from pipeline.measure import provenance, run_in_child
-from pipeline.meshing.raycast import MeshCaster
+from pipeline.raycast import MeshCaster
 
 LAYOUTS = ("dtu", "colmap", "nerfstudio")
 SCENES = ("synth_thin", "synth_relief", "synth_textureless")

@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.meshing.raycast import MeshCaster
+from pipeline.raycast import MeshCaster
 
 
 def relief_mesh(center: np.ndarray, normal: np.ndarray, size_mm: float, amplitude_mm: float,

@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from pipeline.config.loss import LossConfig
-from pipeline.config.params import from_dict, merged_section, nested_sections, section
+from pipeline.config.params import FromConf, from_dict, merged_section, nested_sections, section
 from pipeline.errors import ConfigError
 
 
@@ -15,7 +15,10 @@ from pipeline.errors import ConfigError
 class VariantConfig:
     """One ablation variant (conf/ablation): where its init cloud comes from and the
     settings it changes, as partial sections merged over params ``optimize``, ``loss`` and
-    ``mesh``."""
+    ``mesh``. A set of changes, not a section with values of its own in conf/: its fields keep
+    defaults that mean "no change" (a key a variant leaves out changes nothing; ``full: {}`` is
+    the main pipeline), one of the two exceptions to "conf/ gives every default" with
+    :class:`~pipeline.config.scenes.SceneEntry` (tests/test_config_defaults.py)."""
 
     INITS = ("mvs", "sfm", "random")
 
@@ -30,24 +33,29 @@ class VariantConfig:
 
 
 @dataclass
-class SweepConfig:
-    """The speed-accuracy sweep: each cell (a variant) on each scene."""
+class SweepConfig(FromConf):
+    """The speed-accuracy sweep: each cell (a variant) on each scene (values:
+    conf/ablation/default.yaml ``speed_accuracy``)."""
 
-    scenes: list[str] = field(default_factory=list)
-    cells: list[str] = field(default_factory=list)
+    SECTION = "ablation.speed_accuracy"
+
+    scenes: list[str]
+    cells: list[str]  # names of ``variants``
 
 
 SEED_REPLICATE = re.compile(r"^(?P<row>.+)_seed(?P<seed>\d+)$")  # Table II's row ROW with training seed K
 
 
 @dataclass
-class AblationConfig:
+class AblationConfig(FromConf):
     """``ablation``: the variants that exist, the ones ``dvc repro`` runs (Table II) and the
-    speed-accuracy sweep's cells."""
+    speed-accuracy sweep's cells (values: conf/ablation/default.yaml)."""
 
-    run: list[str] = field(default_factory=list)
-    variants: dict = field(default_factory=dict)
-    speed_accuracy: SweepConfig | dict | None = None
+    SECTION = "ablation"
+
+    run: list[str]  # names of ``variants``
+    variants: dict  # name -> VariantConfig (a mapping as read from YAML becomes one)
+    speed_accuracy: SweepConfig
 
     def __post_init__(self) -> None:
         self.variants = {name: v if isinstance(v, VariantConfig) else from_dict(VariantConfig, v,
@@ -81,5 +89,5 @@ def losses_in_use(params: dict[str, Any]) -> list[LossConfig]:
     """The loss settings that train on a scene's priors: the main ``loss`` section and each
     variant of ``ablation.run`` merged over it. A prior is needed when any of them weights it."""
     ablation = section(AblationConfig, "ablation", params)
-    return [section(LossConfig, "loss", params)] + [merged_section(LossConfig, "loss", params, ablation.variants[n].loss)
-                                                    for n in ablation.run]
+    return [section(LossConfig, "loss", params)] + [
+        merged_section(LossConfig, "loss", params, ablation.variants[n].loss, n) for n in ablation.run]

@@ -1,20 +1,22 @@
 """The training views and resolution (conf/data)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from pipeline.config.params import check_image_size
+from pipeline.config.params import FromConf, check_image_size
 from pipeline.errors import ConfigError
 
 
 @dataclass
-class DataConfig:
-    """Training views and resolution (conf/data/default.yaml). ``height`` must keep the
-    source images' aspect ratio (``gcgs prepare`` refuses to squash)."""
+class DataConfig(FromConf):
+    """Training views and resolution (values: conf/data/default.yaml). ``height`` must keep
+    the source images' aspect ratio (``gcgs prepare`` refuses to squash)."""
 
-    views: list[int] = field(default_factory=lambda: [23, 24, 33])
-    width: int = 800
-    height: int = 600
+    SECTION = "data"
+
+    views: list[int]
+    width: int
+    height: int
 
     def __post_init__(self) -> None:
         if not self.views or any(int(v) != v or v < 0 for v in self.views) or len(set(self.views)) != len(self.views):

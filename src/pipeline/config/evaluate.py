@@ -4,17 +4,22 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+from pipeline.config.params import FromConf
 from pipeline.errors import ConfigError
 
 
 @dataclass
-class EvaluateConfig:
-    cull_views: str = "input"
-    mask_dilation_px: float = 24.0
-    sample_spacing_mm: float = 0.2
-    downsample_radius_mm: float = 0.2
-    max_dist_mm: float = 20.0
-    patch_mm: float = 60.0
+class EvaluateConfig(FromConf):
+    """The DTU Chamfer protocol (values: conf/evaluate/default.yaml)."""
+
+    SECTION = "evaluate"
+
+    cull_views: str  # input | all | none: the views whose masks cull the mesh before sampling
+    mask_dilation_px: float  # mask dilation disk radius at 1600x1200, scaled to the mask resolution
+    sample_spacing_mm: float  # triangle sampling step
+    downsample_radius_mm: float  # radius downsampling of the sampled points
+    max_dist_mm: float  # distances >= this are left out of the means
+    patch_mm: float  # bounding-box margin
 
     def __post_init__(self) -> None:
         if self.cull_views not in ("input", "all", "none"):

@@ -1,39 +1,41 @@
 """The init stage (conf/init)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from pipeline.config.params import nested_sections
+from pipeline.config.params import FromConf, nested_sections, require_in, require_min
 from pipeline.errors import ConfigError
 
 
 @dataclass
-class MVSConfig:
+class MVSConfig(FromConf):
     """Plane-sweep MVS (docs/init.md)."""
 
-    depth_step_px: float = 1.0  # plane spacing, pixels of disparity in the widest-baseline source
-    max_depths: int = 512  # cap on the number of planes
-    window: int = 7  # NCC window side, pixels (odd)
-    min_ncc: float = 0.5  # winner's mean NCC below this -> invalid
-    min_rel_std: float = 0.025  # reference window grey std / the view's mean grey in its mask below this -> textureless
-    sphere_margin: float = 1.0  # depth range: rays crossed with the unit sphere scaled by this
-    refine_iters: int = 1  # surface-following refinement passes (0: plain sweep)
-    refine_range: float = 2.0  # ... searching +- this many plane steps around the smoothed sweep
-    refine_step: float = 0.25  # ... in steps of this fraction of a plane step
-    warn_below_matched: float = 0.15  # warn when a view's matched fraction of mask pixels is below this
-    warn_below_consistent: float = 0.10  # ... or its geometrically consistent fraction
-    fill_width: int = 400  # width (px) of the absolute-difference sweep where NCC has no match (0: off)
-    fill_window: int = 7  # its window side, coarse pixels (odd)
-    fill_max_rms: float = 0.05  # its winner's RMS grey difference (object-mean units) above this -> invalid
-    fill_min_std: float = 0.002  # its window's grey std (object-mean units) below this -> one grey, invalid
+    SECTION = "init.mvs"
+
+    depth_step_px: float  # plane spacing, pixels of disparity in the widest-baseline source
+    max_depths: int  # cap on the number of planes
+    window: int  # NCC window side, pixels (odd)
+    min_ncc: float  # winner's mean NCC below this -> invalid
+    min_rel_std: float  # reference window grey std / the view's mean grey in its mask below this -> textureless
+    sphere_margin: float  # depth range: rays crossed with the unit sphere scaled by this
+    refine_iters: int  # surface-following refinement passes (0: plain sweep)
+    refine_range: float  # ... searching +- this many plane steps around the smoothed sweep
+    refine_step: float  # ... in steps of this fraction of a plane step
+    warn_below_matched: float  # warn when a view's matched fraction of mask pixels is below this
+    warn_below_consistent: float  # ... or its geometrically consistent fraction
+    fill_width: int  # width (px) of the absolute-difference sweep where NCC has no match (0: off)
+    fill_window: int  # its window side, coarse pixels (odd)
+    fill_max_rms: float  # its winner's RMS grey difference (object-mean units) above this -> invalid
+    fill_min_std: float  # its window's grey std (object-mean units) below this -> one grey, invalid
     # A hypothesis scores max(mean NCC over the sources, best source's NCC - this): a point
     # beside an occluding edge is hidden from some sources (>= 2: the mean alone).
-    best_source_margin: float = 0.1
+    best_source_margin: float
     # Holes of the consistent depth that good depth encloses, up to this fraction of the image's
     # pixels, are filled by harmonic interpolation and their points join the cloud (not the depth
     # maps, which stay two-view-confirmed); 0: off. pipeline.init.hole_fill.
-    hole_fill_area: float = 0.00625
-    hole_fill_max_bend: float = 0.02  # ... only where the points around it lie within this x its extent of a plane
+    hole_fill_area: float
+    hole_fill_max_bend: float  # ... only where the points around it lie within this x its extent of a plane
 
     def __post_init__(self) -> None:
         if not 0 <= self.hole_fill_area < 1 or not self.hole_fill_max_bend >= 0:
@@ -52,57 +54,84 @@ class MVSConfig:
             raise ConfigError(f"init.mvs.min_rel_std must be >= 0, got {self.min_rel_std}")
         if not self.best_source_margin >= 0:
             raise ConfigError(f"init.mvs.best_source_margin must be >= 0, got {self.best_source_margin}")
+        require_in("init.mvs", self, "min_ncc", -1, 1)
+        require_in("init.mvs", self, "warn_below_matched warn_below_consistent", 0, 1)
+        require_min("init.mvs", self, "sphere_margin", strict=True)
 
 
 @dataclass
-class ConsistencyConfig:
+class ConsistencyConfig(FromConf):
     """Geometric consistency of depth maps across views (mvs and mast3r)."""
 
-    px: float = 1.0  # reprojection error bound, pixels
-    rel_depth: float = 0.002  # relative depth error bound
-    min_views: int = 1  # other views that must agree
+    SECTION = "init.consistency"
+
+    px: float  # reprojection error bound, pixels
+    rel_depth: float  # relative depth error bound
+    min_views: int  # other views that must agree
+
+    def __post_init__(self) -> None:
+        require_min("init.consistency", self, "px rel_depth", strict=True)
+        require_min("init.consistency", self, "min_views")
 
 
 @dataclass
-class SfMConfig:
+class SfMConfig(FromConf):
     """SIFT matches triangulated with the known cameras."""
 
-    max_features: int = 20000  # per view
-    ratio: float = 0.8  # Lowe's ratio test
-    epipolar_px: float = 2.0  # distance to the epipolar line from the known cameras, pixels
-    reproj_px: float = 2.0  # reprojection error bound after triangulation, pixels
-    min_angle_deg: float = 1.0  # triangulation angle lower bound
+    SECTION = "init.sfm"
+
+    max_features: int  # per view
+    ratio: float  # Lowe's ratio test
+    epipolar_px: float  # distance to the epipolar line from the known cameras, pixels
+    reproj_px: float  # reprojection error bound after triangulation, pixels
+    min_angle_deg: float  # triangulation angle lower bound
+
+    def __post_init__(self) -> None:
+        require_min("init.sfm", self, "max_features", 1)
+        require_min("init.sfm", self, "ratio epipolar_px reproj_px", strict=True)
+        require_in("init.sfm", self, "ratio", 0, 1)
+        require_in("init.sfm", self, "min_angle_deg", 0, 180)
 
 
 @dataclass
-class MASt3RConfig:
+class MASt3RConfig(FromConf):
     """MASt3R ONNX backend (contract in docs/init.md)."""
 
-    model: str | None = None  # path of the ONNX file (or --model)
-    long_side: int = 512  # network input long side, pixels (dynamic-shape models)
-    min_conf: float = 1.5  # MASt3R confidence (>= 1) below this -> invalid
-    fit_shift: bool = False  # fit depth = s * pred + t instead of s * pred
-    match_subsample: int = 4  # pixel stride for the 3D reciprocal nearest-neighbour matches
-    epipolar_px: float = 3.0  # match check against the known epipolar geometry, scene pixels
-    consistency_px: float = 2.0  # geometric consistency of the aligned depth maps, pixels
-    consistency_rel_depth: float = 0.01  # ... and relative depth
-    ransac_iters: int = 200
-    inlier_rel: float = 0.01  # RANSAC inlier bound on relative depth error
+    SECTION = "init.mast3r"
+
+    model: str | None  # path of the ONNX file (or --model)
+    long_side: int  # network input long side, pixels (dynamic-shape models)
+    min_conf: float  # MASt3R confidence (>= 1) below this -> invalid
+    fit_shift: bool  # fit depth = s * pred + t instead of s * pred
+    match_subsample: int  # pixel stride for the 3D reciprocal nearest-neighbour matches
+    epipolar_px: float  # match check against the known epipolar geometry, scene pixels
+    consistency_px: float  # geometric consistency of the aligned depth maps, pixels
+    consistency_rel_depth: float  # ... and relative depth
+    ransac_iters: int
+    inlier_rel: float  # RANSAC inlier bound on relative depth error
+
+    def __post_init__(self) -> None:
+        require_min("init.mast3r", self, "long_side match_subsample ransac_iters", 1)
+        require_min("init.mast3r", self, "epipolar_px consistency_px consistency_rel_depth inlier_rel", strict=True)
+        require_min("init.mast3r", self, "min_conf")
 
 
 @dataclass
-class InitConfig:
-    """The init stage (conf/init/*.yaml)."""
+class InitConfig(FromConf):
+    """The init stage (values: conf/init/*.yaml, the default preset conf/init/mvs.yaml; nested
+    sections likewise)."""
 
-    backend: str = "mvs"
-    seed: int = 0
-    voxel_norm: float = 0.002  # cloud voxel size, unit-sphere radii (x scale_mat radius = mm)
-    normal_knn: int = 20
-    random_points: int = 100000  # random backend: points in the unit sphere
-    mvs: MVSConfig = field(default_factory=MVSConfig)
-    consistency: ConsistencyConfig = field(default_factory=ConsistencyConfig)
-    sfm: SfMConfig = field(default_factory=SfMConfig)
-    mast3r: MASt3RConfig = field(default_factory=MASt3RConfig)
+    SECTION = "init"
+
+    backend: str  # one of BACKENDS
+    seed: int
+    voxel_norm: float  # cloud voxel size, unit-sphere radii (x scale_mat radius = mm)
+    normal_knn: int
+    random_points: int  # random backend: points in the unit sphere
+    mvs: MVSConfig
+    consistency: ConsistencyConfig
+    sfm: SfMConfig
+    mast3r: MASt3RConfig
 
     BACKENDS = ("mvs", "sfm", "mast3r", "random")  # pipeline.init.backends.BACKEND_MODULES implements each
 
@@ -110,5 +139,6 @@ class InitConfig:
         nested_sections(self, "init", mvs=MVSConfig, consistency=ConsistencyConfig, sfm=SfMConfig, mast3r=MASt3RConfig)
         if self.backend not in self.BACKENDS:
             raise ConfigError(f"init.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
-        if self.voxel_norm < 0:
-            raise ConfigError(f"init.voxel_norm must be >= 0, got {self.voxel_norm}")
+        require_min("init", self, "seed voxel_norm")  # voxel_norm 0: no voxel averaging
+        require_min("init", self, "normal_knn", 3)  # a plane fit needs 3 points
+        require_min("init", self, "random_points", 1)

@@ -3,37 +3,39 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from pipeline.config.params import FromConf
 from pipeline.errors import ConfigError
 
 
 @dataclass
-class MeshConfig:
-    """TSDF meshing of depth maps (conf/mesh/default.yaml; ``gcgs tsdf``, later ``gcgs mesh``).
+class MeshConfig(FromConf):
+    """TSDF meshing of depth maps (values: conf/mesh/default.yaml; ``gcgs mesh``, ``gcgs tsdf``).
 
-    Sizes are in unit-sphere radii (x the scale_mat radius = mm); 2DGS on DTU uses voxel
-    0.004 and truncation 0.016. Cleaning keeps every connected component with at least
-    ``min_component_fraction`` of the largest one's triangles, so an object in several
-    separate parts keeps its parts while small floaters go."""
+    Sizes are in unit-sphere radii (x the scale_mat radius = mm). Cleaning keeps every
+    connected component with at least ``min_component_fraction`` of the largest one's
+    triangles, so an object in several separate parts keeps its parts while small floaters go."""
 
-    voxel_norm: float = 0.004
-    trunc_norm: float = 0.016
-    min_component_fraction: float = 0.005
+    SECTION = "mesh"
+
+    voxel_norm: float
+    trunc_norm: float
+    min_component_fraction: float
     # gcgs mesh (surfels -> depth -> TSDF):
-    depth: str = "median"  # rendered depth fused: median (2DGS on DTU) | expected
-    alpha_min: float = 0.5  # pixels with less accumulated alpha have no depth
-    masks: bool = True  # zero the depth outside the input views' masks (where the scene has masks)
-    virtual_per_pair: int = 0  # virtual views rendered between each pair of input views
+    depth: str  # rendered depth fused: median (2DGS on DTU) | expected
+    alpha_min: float  # pixels with less accumulated alpha have no depth
+    masks: bool  # zero the depth outside the input views' masks (where the scene has masks)
+    virtual_per_pair: int  # virtual views rendered between each pair of input views
     # Where the init's MVS depth map (two-view confirmed) agrees with the rendered depth to
     # this relative tolerance, that pixel fuses the init's depth instead; 0: off.
-    init_depth_rel_tol: float = 0.0
+    init_depth_rel_tol: float
     # Bounding region for depth fused without masks (meshing/region.py): the unit sphere and,
     # when the depth shows one, the half-space above the support plane (the table).
-    region: str = "auto"  # auto (when no mask cuts the fused depth) | on | off
-    region_plane_share: float = 0.15  # a plane is the table when at least this share of depth points lie on it
-    region_plane_margin_norm: float = 0.008  # the region starts this far above the table (unit-sphere radii)
+    region: str  # auto (when no mask cuts the fused depth) | on | off
+    region_plane_share: float  # a plane is the table when at least this share of depth points lie on it
+    region_plane_margin_norm: float  # the region starts this far above the table (unit-sphere radii)
     # Holes whose boundary fits in a sphere of this radius (unit-sphere radii) are closed where
     # the fused depth maps support the new triangles (meshing/holes.py); 0: off.
-    fill_holes_norm: float = 0.0
+    fill_holes_norm: float
 
     def __post_init__(self) -> None:
         if self.region not in ("auto", "on", "off"):

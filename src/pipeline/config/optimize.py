@@ -1,44 +1,55 @@
 """The optimize stage (conf/optimize)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-from pipeline.config.params import nested_sections
+from pipeline.config.params import FromConf, nested_sections, require_in, require_min
 from pipeline.errors import ConfigError
 
 
 @dataclass
-class LearningRates:
-    """Adam learning rates (2DGS defaults). ``means`` decays exponentially to
-    ``means_final`` over the run; both are in normalised units x ``scene_extent``."""
+class LearningRates(FromConf):
+    """Adam learning rates (values: the preset's ``lr``, conf/optimize/*.yaml; 2DGS's rates
+    there). ``means`` decays exponentially to ``means_final`` over the run; both are in
+    normalised units x ``scene_extent``."""
 
-    means: float = 1.6e-4
-    means_final: float = 1.6e-6
-    log_scales: float = 5e-3
-    quats: float = 1e-3
-    opacity_logits: float = 0.05
-    sh_dc: float = 2.5e-3
-    sh_rest: float = 1.25e-4  # sh_dc / 20
+    SECTION = "optimize.lr"
+
+    means: float
+    means_final: float
+    log_scales: float
+    quats: float
+    opacity_logits: float
+    sh_dc: float
+    sh_rest: float
+
+    def __post_init__(self) -> None:
+        # 0 freezes a parameter; a negative rate climbs the loss. ``means`` decays
+        # geometrically to ``means_final`` (exp of interpolated logs), so both must be > 0.
+        require_min("optimize.lr", self, "means means_final", strict=True)
+        require_min("optimize.lr", self, "log_scales quats opacity_logits sh_dc sh_rest")
 
 
 @dataclass
-class DensifyConfig:
+class DensifyConfig(FromConf):
     """Adaptive density control: the configuration of :class:`pipeline.optimize.strategy.
-    DensifyStrategy` (its only one). Iterations are 0-based steps; sizes are relative to
-    ``optimize.scene_extent``."""
+    DensifyStrategy` (its only one; values: the preset's ``densify``, conf/optimize/*.yaml).
+    Iterations are 0-based steps; sizes are relative to ``optimize.scene_extent``."""
 
-    start_iter: int = 500
-    stop_iter: int = 15000
-    every: int = 100
-    grad_threshold: float = 2e-4  # mean screen-space gradient, normalised device units (2DGS/3DGS)
-    percent_dense: float = 0.01  # clone if max scale <= this x extent, else split
-    split_factor: float = 1.6  # a split child's scale = parent / 1.6 (2DGS: 0.8 * 2)
-    prune_opacity: float = 0.05
-    reset_every: int = 3000  # 0: never
-    reset_value: float = 0.01  # opacity reset to min(opacity, this)
-    max_world_scale: float = 0.1  # x extent, pruned after the first reset
-    max_screen_fraction: float = 0.0  # x max(W, H), pruned after the first reset (0: off)
-    max_surfels: int = 300000  # budget
+    SECTION = "optimize.densify"
+
+    start_iter: int
+    stop_iter: int
+    every: int
+    grad_threshold: float  # mean screen-space gradient, normalised device units (2DGS/3DGS)
+    percent_dense: float  # clone if max scale <= this x extent, else split
+    split_factor: float  # a split child's scale = parent / split_factor (2DGS: 0.8 * 2)
+    prune_opacity: float
+    reset_every: int  # opacity reset every this many iterations; 0: never
+    reset_value: float  # opacity reset to min(opacity, this)
+    max_world_scale: float  # x extent, pruned after the first reset
+    max_screen_fraction: float  # x max(W, H), pruned after the first reset (0: off)
+    max_surfels: int  # budget
 
     def __post_init__(self) -> None:
         where = "optimize.densify"
@@ -63,7 +74,7 @@ class DensifyConfig:
 
 
 @dataclass
-class PhotoResetConfig:
+class PhotoResetConfig(FromConf):
     """Opacity reset by multi-view photo-consistency (docs/optimize.md "Resetting where the
     views disagree"): after each densification step, every input view is rendered and the
     surfels that are the visible surface (centre projected into the pixel, centre depth
@@ -71,12 +82,15 @@ class PhotoResetConfig:
     rendered plane has a best-source NCC below ``ncc_min`` get their opacity capped at
     ``opacity``; the next densification step prunes those that have not regained
     ``densify.prune_opacity``. Sources that do not see the point (their rendered depth nearer
-    by more than ``depth_rel_tol``) are no evidence. Off unless ``enabled``."""
+    by more than ``depth_rel_tol``) are no evidence. Off unless ``enabled`` (values: the
+    preset's ``photo_reset``, conf/optimize/*.yaml)."""
 
-    enabled: bool = False
-    ncc_min: float = 0.5
-    depth_rel_tol: float = 0.003
-    opacity: float = 0.01  # 2DGS's opacity reset value
+    SECTION = "optimize.photo_reset"
+
+    enabled: bool
+    ncc_min: float
+    depth_rel_tol: float
+    opacity: float
 
     def __post_init__(self) -> None:
         where = "optimize.photo_reset"
@@ -89,15 +103,18 @@ class PhotoResetConfig:
 
 
 @dataclass
-class CropConfig:
+class CropConfig(FromConf):
     """Training on part of each view (docs/optimize.md "Training on crops"): an iteration
     renders and back-propagates a window of ``fraction`` x the view's width and height
     (whole pixels), centred on a random mask pixel (a random pixel without masks) and moved
     inside the image; every ``full_every``-th iteration renders the whole view (0: never).
-    ``fraction`` 0 or 1: the whole view every iteration."""
+    ``fraction`` 0 or 1: the whole view every iteration (values: the preset's ``crop``,
+    conf/optimize/*.yaml)."""
 
-    fraction: float = 0.0
-    full_every: int = 0
+    SECTION = "optimize.crop"
+
+    fraction: float
+    full_every: int
 
     def __post_init__(self) -> None:
         if not 0 <= self.fraction <= 1:
@@ -111,50 +128,59 @@ class CropConfig:
 
 
 @dataclass
-class TermStarts:
-    """Iteration from which each loss term is on (0: from the start)."""
+class TermStarts(FromConf):
+    """Iteration from which each loss term is on (0: from the start; values: the preset's
+    ``start``, conf/optimize/*.yaml)."""
 
-    gcf: int = 0
-    nor: int = 0
-    d: int = 3000
-    dn: int = 7000
-    mv: int = 7000  # PGSR starts its multi-view terms at 7000 of 30000
+    SECTION = "optimize.start"
+
+    gcf: int
+    nor: int
+    d: int
+    dn: int
+    mv: int  # L_mv, L_mvgeo and L_smooth
+
+    def __post_init__(self) -> None:
+        require_min("optimize.start", self, "gcf nor d dn mv")
 
 
 @dataclass
-class OptimizeConfig:
-    """The optimize stage (conf/optimize/*.yaml, docs/optimize.md). Training runs in the
-    normalised frame (unit sphere of scale_mat); sizes below are in its units."""
+class OptimizeConfig(FromConf):
+    """The optimize stage (values: conf/optimize/*.yaml, the default preset
+    conf/optimize/fast.yaml; docs/optimize.md). Training runs in the normalised frame (unit
+    sphere of scale_mat); sizes below are in its units."""
 
-    preset: str = "custom"  # the name of the conf/optimize preset, for reports
-    backend: str = "auto"  # auto (= cpu, also on a GPU: resolve_backend) | cpu | cuda | reference
-    iterations: int = 10000
-    seed: int = 0
-    sh_degree: int = 3
-    sh_every: int = 1000  # raise the evaluated SH degree by one every this many iterations
-    masks: str = "auto"  # auto (when the scene has masks) | on | off
-    background: float = 0.0  # grey level behind the object (DTU: black)
-    init_opacity: float = 0.1
-    init_normals: bool = True  # seed each surfel's normal from its point normal (False: random, 2DGS)
-    init_voxel_norm: float = 0.0  # thin the init cloud to this voxel before seeding (0: keep every point)
-    scene_extent: float = 1.0  # the object radius in the normalised frame
+    SECTION = "optimize"
+
+    preset: str  # the name of the conf/optimize preset, for reports
+    backend: str  # auto (= cpu, also on a GPU: resolve_backend) | cpu | cuda | reference
+    iterations: int
+    seed: int
+    sh_degree: int  # the highest SH degree evaluated (0: view-independent colour)
+    sh_every: int  # raise the evaluated SH degree by one every this many iterations
+    masks: str  # auto (when the scene has masks) | on | off
+    background: float  # grey level behind the object (DTU: black)
+    init_opacity: float
+    init_normals: bool  # seed each surfel's normal from its point normal (False: random, 2DGS)
+    init_voxel_norm: float  # thin the init cloud to this voxel before seeding (0: keep every point)
+    scene_extent: float  # the object radius in the normalised frame
     # Resolution schedule: [from_fraction_of_iterations, downscale_factor] pairs.
-    downscale: list[list[float]] = field(default_factory=lambda: [[0.0, 1]])
-    surface_alpha: float = 0.5  # a pixel is surface (for L_gcf, L_nor) where alpha exceeds this
-    gcf_max_points: int = 16384  # L_gcf on a random subset of at most this many surface pixels (0: all)
-    mv_max_points: int = 4096  # L_mv on a random subset of at most this many surface pixels (0: all)
-    # Draw that subset among the pixels whose reference patch is textured (mvphoto.textured_pixels):
-    # the others give no pair. False: among every surface pixel (the committed runs' rule).
-    mv_textured_points: bool = False
-    dn_depth: str = "median"  # depth whose normals L_dn compares: median (2DGS DTU) | expected
-    near: float = 0.2  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
-    far: float = 100.0
-    checkpoint_every: int = 500  # 0: no checkpoints
-    lr: LearningRates = field(default_factory=LearningRates)
-    densify: DensifyConfig = field(default_factory=DensifyConfig)
-    start: TermStarts = field(default_factory=TermStarts)
-    photo_reset: PhotoResetConfig = field(default_factory=PhotoResetConfig)
-    crop: CropConfig = field(default_factory=CropConfig)
+    downscale: list[list[float]]
+    surface_alpha: float  # a pixel is surface (for L_gcf, L_nor) where alpha exceeds this
+    gcf_max_points: int  # L_gcf on a random subset of at most this many surface pixels (0: all)
+    mv_max_points: int  # L_mv on a random subset of at most this many surface pixels (0: all)
+    # Draw that subset among the pixels whose reference patch is textured (losses.multiview.textured_pixels):
+    # the others give no pair. False: among every surface pixel.
+    mv_textured_points: bool
+    dn_depth: str  # depth whose normals L_dn compares: median (2DGS DTU) | expected
+    near: float  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
+    far: float
+    checkpoint_every: int  # 0: no checkpoints
+    lr: LearningRates
+    densify: DensifyConfig
+    start: TermStarts
+    photo_reset: PhotoResetConfig
+    crop: CropConfig
 
     BACKENDS = ("auto", "cpu", "cuda", "reference")
 
@@ -167,8 +193,11 @@ class OptimizeConfig:
             raise ConfigError(f"optimize.masks must be auto, on or off, got {self.masks!r}")
         if self.dn_depth not in ("median", "expected"):
             raise ConfigError(f"optimize.dn_depth must be median or expected, got {self.dn_depth!r}")
-        if self.iterations < 1 or not 0 <= self.sh_degree <= 3 or self.sh_every < 1:
-            raise ConfigError("optimize: iterations >= 1, sh_degree in 0..3 and sh_every >= 1 required")
+        require_min("optimize", self, "iterations sh_every", 1)
+        require_in("optimize", self, "sh_degree", 0, 3)
+        require_min("optimize", self, "seed init_voxel_norm gcf_max_points mv_max_points checkpoint_every")
+        require_min("optimize", self, "scene_extent", strict=True)
+        require_in("optimize", self, "background", 0, 1)
         if not self.downscale or any(len(d) != 2 or not 0 <= d[0] <= 1 or d[1] < 1 for d in self.downscale):
             raise ConfigError(f"optimize.downscale must be [[fraction in 0..1, factor >= 1], ...], got {self.downscale}")
         if sorted(d[0] for d in self.downscale) != [d[0] for d in self.downscale] or self.downscale[0][0] != 0:

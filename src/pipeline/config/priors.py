@@ -1,29 +1,32 @@
 """The priors stage (conf/priors)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+from pipeline.config.params import FromConf
 from pipeline.errors import ConfigError
 
 
 @dataclass
-class PriorsConfig:
-    """The priors stage (conf/priors/default.yaml, docs/priors.md). Backends run only when
-    their loss weight is non-zero: features need loss.lambda_gcf > 0, normals loss.lambda_nor > 0."""
+class PriorsConfig(FromConf):
+    """The priors stage (values: conf/priors/default.yaml; docs/priors.md). Backends run only
+    when their loss weight is non-zero: features need loss.lambda_gcf > 0, normals loss.lambda_nor > 0."""
 
-    normals: str = "default"  # default (from the init depth maps) | dsine | none
-    features: str = "default"  # default (NCC patches) | vismvsnet | none
-    dsine_model: str = "models/dsine.onnx"
-    vismvsnet_model: str = "models/vismvsnet_features.onnx"
-    normal_step_px: int = 2  # central-difference half-width, pixels
-    normal_smooth_sigma_px: float = 1.5  # bilateral spatial sigma, pixels (0: no smoothing)
-    normal_smooth_sigma_mm: float = 3.0  # bilateral depth sigma, mm
-    normal_max_slant_deg: float = 80.0  # steeper depth steps are discontinuities
-    feature_patch: int = 5  # odd patch side, 1/2-resolution pixels
-    feature_scales: list[int] = field(default_factory=lambda: [1, 2])  # patch dilations
-    feature_min_rel_contrast: float = 0.025  # patch grey std / the view's mean grey in its mask below this -> zero feature
-    feature_detrend: bool = True  # remove each patch's linear ramp before that test (shading carries no NCC match)
-    feature_dtype: str = "float16"  # storage dtype of the feature maps
+    SECTION = "priors"
+
+    normals: str  # default (from the init depth maps) | dsine | none
+    features: str  # default (NCC patches) | vismvsnet | none
+    dsine_model: str  # path of the DSINE ONNX file
+    vismvsnet_model: str  # path of the Vis-MVSNet feature ONNX file
+    normal_step_px: int  # central-difference half-width, pixels
+    normal_smooth_sigma_px: float  # bilateral spatial sigma, pixels (0: no smoothing)
+    normal_smooth_sigma_mm: float  # bilateral depth sigma, mm
+    normal_max_slant_deg: float  # steeper depth steps are discontinuities
+    feature_patch: int  # odd patch side, 1/2-resolution pixels
+    feature_scales: list[int]  # patch dilations
+    feature_min_rel_contrast: float  # patch grey std / the view's mean grey in its mask below this -> zero feature
+    feature_detrend: bool  # remove each patch's linear ramp before that test (shading carries no NCC match)
+    feature_dtype: str  # storage dtype of the feature maps: float16 | float32
 
     NORMALS = ("default", "dsine", "none")
     FEATURES = ("default", "vismvsnet", "none")

@@ -9,7 +9,9 @@ from pipeline.errors import ConfigError
 
 @dataclass
 class SceneEntry:
-    """One entry of ``scenes`` in params.yaml."""
+    """One entry of ``scenes`` in params.yaml. An entry is data, not a setting with a value in
+    conf/: ``gt`` may be left out (no ground truth), the one default of the config dataclasses
+    besides :class:`~pipeline.config.ablation.VariantConfig`'s (tests/test_config_defaults.py)."""
 
     src: str
     gt: str | None = None

@@ -38,10 +38,11 @@ def variant_training(params: dict, variant: str) -> tuple[VariantConfig, Optimiz
     """The variant's own settings and the optimize and loss sections it trains with (not
     ``mesh``: its training must not depend on the meshing settings)."""
     v = variant_entry(params, variant)
-    return v, merged_section(OptimizeConfig, "optimize", params, v.optimize), merged_section(LossConfig, "loss", params, v.loss)
+    return (v, merged_section(OptimizeConfig, "optimize", params, v.optimize, variant),
+            merged_section(LossConfig, "loss", params, v.loss, variant))
 
 
 def variant_configs(params: dict, variant: str) -> tuple[VariantConfig, OptimizeConfig, LossConfig, MeshConfig]:
     """The variant's own settings and the optimize, loss and mesh sections it runs with."""
     v, opt, loss = variant_training(params, variant)
-    return v, opt, loss, merged_section(MeshConfig, "mesh", params, v.mesh)
+    return v, opt, loss, merged_section(MeshConfig, "mesh", params, v.mesh, variant)

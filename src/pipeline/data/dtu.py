@@ -86,9 +86,10 @@ def find_camera_file(root: Path) -> Path:
 
 
 def read_image(path: Path) -> np.ndarray:
-    """RGB float32 in [0, 1]; a clear error for unreadable files."""
+    """RGB float32 in [0, 1]; a clear error for unreadable, truncated or corrupt files."""
     if not path.is_file():
         raise SceneError(f"{path}: file not found")
+    _check_whole(path)
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None or img.size == 0:
         raise SceneError(f"{path}: not a readable image (corrupt or unsupported format)")
@@ -96,12 +97,51 @@ def read_image(path: Path) -> np.ndarray:
 
 
 def read_mask(path: Path) -> np.ndarray:
+    """Foreground where the grey value is > 127; in an image with an alpha channel that is
+    not constant (the mask exported as transparency) where the alpha is > 127."""
     if not path.is_file():
         raise SceneError(f"{path}: file not found")
+    alpha = _check_whole(path, alpha=True)
     m = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
     if m is None or m.size == 0:
         raise SceneError(f"{path}: not a readable mask image (corrupt or unsupported format)")
+    if alpha is not None and alpha.min() != alpha.max():
+        return alpha > 127
     return m > 127
+
+
+def _check_whole(path: Path, alpha: bool = False) -> np.ndarray | None:
+    """Read ``path`` to its end with PIL, which raises on a file cut short or corrupt where
+    cv2 may only warn and fill in grey ("Premature end of JPEG file"); cv2 still decodes the
+    pixels. Returns the 8-bit alpha channel when ``alpha`` and the image has one."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            if alpha and ("A" in im.getbands() or (im.mode in ("P", "L", "RGB") and "transparency" in im.info)):
+                return np.asarray(im.convert("RGBA").getchannel("A"))
+            if im.format == "PNG":
+                im.verify()  # every chunk there with its checksum, without inflating: cheap
+                return None
+            if im.format == "JPEG":  # DCT scaling: all the data is still read, 1/64 of the pixels made
+                im.draft(im.mode, (max(1, im.width // 8), max(1, im.height // 8)))
+            im.load()
+    except UnidentifiedImageError:
+        return None  # a format PIL does not know: cv2's decode is the only check
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise SceneError(f"{path}: image file is truncated or corrupt ({exc})") from exc
+    return None
+
+
+def scale_mat_problem(S: np.ndarray) -> str | None:
+    """Why ``S`` cannot be a scan's ``scale_mat`` (unit sphere -> world), or ``None``; shared
+    by the reader and by ``gcgs prepare --sphere``, so prepare writes no scene the reader refuses."""
+    S = np.asarray(S, dtype=np.float64)
+    if S.shape != (4, 4) or not np.all(np.isfinite(S)):
+        return f"must be a finite 4x4 matrix, got shape {S.shape}"
+    if abs(np.linalg.det(S)) < 1e-12:
+        return "is singular"
+    return None
 
 
 def load_cameras(root: str | Path) -> DTUCameras:
@@ -128,10 +168,8 @@ def load_cameras(root: str | Path) -> DTUCameras:
         if key not in files:
             raise SceneError(f"{path}: missing {key}")
         S = np.asarray(data[key], dtype=np.float64)
-        if S.shape != (4, 4) or not np.all(np.isfinite(S)):
-            raise SceneError(f"{path}: {key} must be a finite 4x4 matrix, got shape {S.shape}")
-        if abs(np.linalg.det(S)) < 1e-12:
-            raise SceneError(f"{path}: {key} is singular")
+        if problem := scale_mat_problem(S):
+            raise SceneError(f"{path}: {key} {problem}")
         if scale is None:
             scale = S
         elif not np.allclose(S, scale, rtol=1e-5, atol=1e-6):
@@ -147,6 +185,16 @@ def read_meta(root: Path) -> dict:
         return json.loads(p.read_text())
     except json.JSONDecodeError as exc:
         raise SceneError(f"{p}: invalid JSON ({exc})") from exc
+
+
+def prepared_views(scene: str | Path) -> list[int] | None:
+    """The input views ``gcgs prepare`` made ``scene`` with (its scene.json ``views``); ``None``
+    for a scene that records none (a source scan such as ``gcgs synth``'s output)."""
+    views = read_meta(Path(scene)).get("views")
+    if views is not None and not (isinstance(views, list) and views
+                                  and all(type(v) is int and v >= 0 for v in views)):
+        raise SceneError(f"{Path(scene) / 'scene.json'}: views must be a list of view ids, got {views!r}")
+    return views
 
 
 def load_scene(

@@ -63,6 +63,17 @@ def check_size(src: Path, stored: tuple[int, int], width: int, height: int, warn
              f"{factor:.2f} times; it adds pixels to train on, not detail")
 
 
+def input_views(src: str | Path, given: list[int] | None, dtu_views: list[int]) -> list[int]:
+    """The views to train on: ``given`` (``--views``) if any; else, for a DTU scan, the
+    sparse-view protocol's ``dtu_views`` (params ``data.views``), and for any other capture
+    (COLMAP, nerfstudio) every image it holds (ids 0..N-1 by image name)."""
+    if given:
+        return [int(v) for v in given]
+    if layouts.detect(src) == "dtu":
+        return [int(v) for v in dtu_views]
+    return sorted(layouts.read_capture(src).images)
+
+
 def prepare_scene(
     src: str | Path, out: str | Path, cfg: DataConfig, name: str | None = None, extra_meta: dict | None = None,
     warn: Callable[[str], None] = print_warning, use_masks: bool = True,
@@ -104,7 +115,11 @@ def given_sphere(sphere, world_to_cam: dict[int, np.ndarray], views, src: Path) 
         T = world_to_cam[v]
         if (T[:3, :3] @ centre + T[:3, 3])[2] <= 0:
             raise SceneError(f"{src}: the given sphere's centre {centre.tolist()} is behind view {v}'s camera")
-    return sphere_matrix(centre, float(vals[3]))
+    S = sphere_matrix(centre, float(vals[3]))
+    if problem := dtu.scale_mat_problem(S):
+        raise SceneError(f"{src}: the given sphere {list(sphere)} makes a scale_mat that {problem}, which "
+                         "gcgs init would refuse; give the radius in the input's world units")
+    return S
 
 
 def _given_note(sphere) -> str:

@@ -18,7 +18,7 @@ from scipy.spatial import cKDTree
 
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.gt import GroundTruth, read_mesh
-from pipeline.meshing.raycast import distance_to_mesh
+from pipeline.raycast import distance_to_mesh
 
 
 def cloud_metrics(points_mm: np.ndarray, ground: GroundTruth, cfg: EvaluateConfig) -> dict:

@@ -18,7 +18,7 @@ from pipeline.config.evaluate import EvaluateConfig
 from pipeline.evaluation.dtu_eval import CullView, evaluate_mesh
 from pipeline.evaluation.gt import GroundTruth
 from pipeline.evaluation.sampling import check_mesh
-from pipeline.meshing.raycast import MeshCaster
+from pipeline.raycast import MeshCaster
 
 PARTS = ("shared", "added")
 

@@ -51,7 +51,7 @@ def depth_errors(depths_mm: np.ndarray, gt_depths_mm: np.ndarray, masks: np.ndar
 def gt_depths_mm(gt_vertices_mm: np.ndarray, gt_triangles: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray,
                  width: int, height: int) -> np.ndarray:
     """``(N, H, W)`` GT depth (camera z, mm; 0 = miss) ray-cast through each camera's pixel centres."""
-    from pipeline.meshing.raycast import MeshCaster
+    from pipeline.raycast import MeshCaster
 
     caster = MeshCaster(gt_vertices_mm, gt_triangles)
     return np.stack([caster.cast(K[i], world_to_cam[i], height, width).depth_mm for i in range(len(K))])

@@ -118,6 +118,8 @@ def read_points(path: str | Path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise MissingInputError(f"{path}: file not found")
+    if path.suffix.lower() == ".ply":
+        ply.check_file(path, GroundTruthError)
     pts = np.asarray(o3d.io.read_point_cloud(str(path)).points, dtype=np.float64)
     if len(pts) == 0:
         raise GroundTruthError(f"{path}: no points (empty or unreadable point cloud)")
@@ -133,6 +135,8 @@ def read_mesh(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     if not path.is_file():
         raise MissingInputError(f"{path}: file not found")
+    if path.suffix.lower() == ".ply":
+        ply.check_file(path, MeshError)
     m = o3d.io.read_triangle_mesh(str(path))
     vertices = np.asarray(m.vertices, dtype=np.float64)
     if len(vertices) == 0:  # open3d returns an empty mesh (and only warns) on read failures

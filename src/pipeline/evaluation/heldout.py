@@ -12,9 +12,9 @@ import numpy as np
 import torch
 
 from pipeline.data.scene import Scene
-from pipeline.meshing.raycast import MeshCaster
-from pipeline.optimize.surfels import SurfelParams
 from pipeline.rasterizer import Camera, rasterize
+from pipeline.raycast import MeshCaster
+from pipeline.surfels import SurfelParams
 
 ALPHA_SILHOUETTE = 0.5
 

@@ -21,7 +21,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from pipeline import geometry
-from pipeline.meshing.raycast import MeshCaster
+from pipeline.raycast import MeshCaster
 
 GROUPS = ("2+", "1", "0")  # seen by >= 2 input views, by exactly 1, by none
 VISIBILITY_TOL_MM = 0.1  # GT points lie on the GT mesh to float32 precision; this is far above it

@@ -91,9 +91,11 @@ def read_ply(path: str | Path) -> PointCloud:
     props = [line.split()[-1] for line in header if line.startswith("property")]
     if props != list(_PLY_DTYPE.names):
         raise InitFormatError(f"{path}: vertex properties {props} differ from {list(_PLY_DTYPE.names)}")
+    ply.check(raw, path, InitFormatError)
     body = raw[end + len(b"end_header\n"):]
     if len(body) != n * _PLY_DTYPE.itemsize:
-        raise InitFormatError(f"{path}: truncated ({len(body)} bytes of vertex data, expected {n * _PLY_DTYPE.itemsize})")
+        raise InitFormatError(f"{path}: {len(body)} bytes of vertex data, write_ply's types need "
+                              f"{n * _PLY_DTYPE.itemsize} (other property types?)")
     rec = np.frombuffer(body, dtype=_PLY_DTYPE)
     try:
         return PointCloud(

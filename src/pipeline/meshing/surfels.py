@@ -1,7 +1,7 @@
 """Mesh from trained surfels: render depth at the input views (and optional virtual views
 between them), fuse by TSDF in mm (docs/mesh.md).
 
-Frames and units: surfels live in the normalised frame (``pipeline.optimize.surfels``);
+Frames and units: surfels live in the normalised frame (``pipeline.surfels``);
 rendered depth is normalised camera z, multiplied by the scale_mat radius to mm; fusion
 runs in the world frame in mm with the scene's world-to-camera transforms.
 """
@@ -14,8 +14,8 @@ from pipeline import geometry
 from pipeline.config.mesh import MeshConfig
 from pipeline.data.scene import Scene
 from pipeline.meshing import tsdf
-from pipeline.optimize.surfels import SurfelParams
 from pipeline.rasterizer import Camera, rasterize
+from pipeline.surfels import SurfelParams
 
 
 def virtual_world_to_cams(world_to_cam: np.ndarray, centre_mm: np.ndarray, per_pair: int) -> np.ndarray:

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from pipeline.optimize.surfels import PARAM_NAMES, SurfelParams
 from pipeline.rasterizer.project import quat_to_rotmat
+from pipeline.surfels import PARAM_NAMES, SurfelParams
 
 if TYPE_CHECKING:
     from pipeline.optimize.strategy import DensifyState

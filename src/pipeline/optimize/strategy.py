@@ -17,7 +17,7 @@ import torch
 
 from pipeline.config.optimize import DensifyConfig
 from pipeline.optimize import ops
-from pipeline.optimize.surfels import SurfelParams
+from pipeline.surfels import SurfelParams
 
 
 def screen_grad_ndc(means2d_grad: torch.Tensor, width: int, height: int) -> torch.Tensor:

@@ -34,19 +34,34 @@ from pipeline import atomic
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.errors import ConfigError, Interrupted
-from pipeline.losses import gcf_loss, normal_consistency_losses
-from pipeline.mvphoto import SourceView, best_source_ncc, multiview_consistency, reference_pixels, textured_pixels
-from pipeline.optimize import ops, terms
+from pipeline.losses import (
+    SourceView,
+    best_source_ncc,
+    depth_normal_loss,
+    flat_pixels,
+    gcf_loss,
+    mask_loss,
+    multiview_consistency,
+    mvs_depth_loss,
+    normal_consistency_losses,
+    normal_smoothness_loss,
+    photometric_loss,
+    reference_pixels,
+    textured_pixels,
+)
+from pipeline.optimize import ops
 from pipeline.optimize.photoreset import visible_surfels_at
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
-from pipeline.optimize.surfels import SurfelParams
 from pipeline.optimize.views import TrainViews, ViewData, crop_view, crop_window
 from pipeline.rasterizer import rasterize, resolve_backend
+from pipeline.surfels import SurfelParams
 
 MIN_SCALE = 1e-8  # normalised units; below, a surfel is degenerate (zero area)
 MAX_SCALE = 10.0  # x scene_extent; above, a surfel covers everything (degenerate)
 TIMED = ("render", "photo", "gcf", "mv", "nor", "mvs", "dn", "dist", "mask", "backward", "step", "densify",
          "photo_reset", "smooth")
+
+CHECKPOINT_KIND = "checkpoint"  # the kind its checkpoint files carry (pipeline.atomic): only those are resumed or deleted
 
 
 class NonFiniteLossError(RuntimeError):
@@ -151,7 +166,7 @@ class Trainer:
         self.last_depth = dict(state.get("last_depth", {}))
 
     def save_checkpoint(self, path: Path) -> None:
-        with atomic.atomic_file(path) as tmp:
+        with atomic.atomic_file(path, kind=CHECKPOINT_KIND) as tmp:
             torch.save(self.state_dict(), tmp)
 
     def try_resume(self, path: Path, log: Callable[[str], None]) -> bool:
@@ -255,7 +270,7 @@ class Trainer:
         ``v`` is the whole view ``full``, or its window ``window`` ``(x0, y0, w, h)`` when
         training on a crop (``window`` ``None``: no crop)."""
         cfg, lw = self.cfg, self.loss
-        photo, l1 = terms.photometric_loss(rgb, target, lw.lambda_dssim)
+        photo, l1 = photometric_loss(rgb, target, lw.lambda_dssim)
         yield "photo", photo, 1.0
         yield "l1", l1, None
         surface = out.alpha.detach() > cfg.surface_alpha
@@ -286,30 +301,30 @@ class Trainer:
             yield "mv_valid", mv["valid_fraction"], None
         if lw.lambda_smooth > 0 and it >= cfg.start.mv:
             where = surface & self._flat(i, full, window) if lw.smooth_max_std > 0 else surface
-            yield "smooth", terms.normal_smoothness_loss(out.normal_cam.permute(2, 0, 1), target, where,
-                                                         lw.smooth_gamma), lw.lambda_smooth
+            yield "smooth", normal_smoothness_loss(out.normal_cam.permute(2, 0, 1), target, where,
+                                                   lw.smooth_gamma), lw.lambda_smooth
         if lw.lambda_nor > 0 and it >= cfg.start.nor and v.normal_prior is not None:
             n_hat = F.normalize(out.normal_cam, dim=2).permute(2, 0, 1)
             l_nc, l_ngc = normal_consistency_losses(n_hat, v.normal_prior, v.normal_valid & surface)
             yield "nor", lw.lambda_nc * l_nc + lw.lambda_ngc * l_ngc, lw.lambda_nor
         if lw.lambda_mvs > 0 and v.mvs_depth is not None:
             t = it / max(cfg.iterations - 1, 1)
-            yield "mvs", terms.mvs_depth_loss(out.depth_median, v.mvs_depth, surface & (v.mvs_depth > 0)), \
+            yield "mvs", mvs_depth_loss(out.depth_median, v.mvs_depth, surface & (v.mvs_depth > 0)), \
                 lw.lambda_mvs * (1.0 - t * (1.0 - lw.mvs_final))
         if lw.lambda_dn > 0 and it >= cfg.start.dn:
             depth = out.depth_median if cfg.dn_depth == "median" else out.depth_expected
-            yield "dn", terms.depth_normal_loss(out.normal_cam.permute(2, 0, 1), depth, out.alpha, v.K), lw.lambda_dn
+            yield "dn", depth_normal_loss(out.normal_cam.permute(2, 0, 1), depth, out.alpha, v.K), lw.lambda_dn
         if lw.lambda_d > 0 and it >= cfg.start.d:
             yield "dist", out.distortion.mean(), lw.lambda_d
         if lw.lambda_mask > 0 and v.mask is not None:
-            yield "mask", terms.mask_loss(out.alpha, v.mask), lw.lambda_mask
+            yield "mask", mask_loss(out.alpha, v.mask), lw.lambda_mask
 
     def _multiview(self, i: int, K_train: torch.Tensor, depth: torch.Tensor, normal: torch.Tensor,
                    surface: torch.Tensor) -> dict[str, torch.Tensor]:
         """L_mv's photometric and geometric parts on a seeded random subset of the ``surface``
         pixels of view ``i`` (rendered ``depth``, ``normal`` at intrinsics ``K_train``) seen
         within ``loss.mv_max_incidence_deg`` of the ray, the other input views as sources
-        (:mod:`pipeline.mvphoto`)."""
+        (:mod:`pipeline.losses.multiview`)."""
         cfg, lw, views = self.cfg, self.loss, self.views
         candidates = reference_pixels(surface, normal, K_train, lw.mv_max_incidence_deg)
         if cfg.mv_textured_points:
@@ -326,9 +341,10 @@ class Trainer:
                                      max_cost=lw.mv_max_cost)
 
     def _textured(self, i: int, size: tuple[int, int]) -> torch.Tensor:
-        """:func:`mvphoto.textured_pixels` of view ``i`` at the training ``size`` (h, w), once
-        per (view, size): L_mv samples its points among them, since a flat reference patch
-        gives no pair (on synth_textureless 68-73% of the masked pixels are flat)."""
+        """:func:`pipeline.losses.multiview.textured_pixels` of view ``i`` at the training
+        ``size`` (h, w), once per (view, size): L_mv samples its points among them, since a
+        flat reference patch gives no pair (on synth_textureless 68-73% of the masked pixels
+        are flat)."""
         key = (i, tuple(size))
         if key not in self.textured_cache:
             lw = self.loss
@@ -337,13 +353,13 @@ class Trainer:
         return self.textured_cache[key]
 
     def _flat(self, i: int, full: ViewData, window: tuple[int, int, int, int] | None) -> torch.Tensor:
-        """:func:`terms.flat_pixels` of view ``i``'s masked target at ``full``'s size, computed
-        once per (view, size) since nothing training changes moves it. It is taken on the whole
-        view, so a crop's border pixels keep their whole neighbourhood; ``window``
-        ``(x0, y0, w, h)`` cuts it to the crop."""
+        """:func:`pipeline.losses.smoothness.flat_pixels` of view ``i``'s masked target at
+        ``full``'s size, computed once per (view, size) since nothing training changes moves
+        it. It is taken on the whole view, so a crop's border pixels keep their whole
+        neighbourhood; ``window`` ``(x0, y0, w, h)`` cuts it to the crop."""
         key = (i, full.size)
         if key not in self.flat_cache:
-            self.flat_cache[key] = terms.flat_pixels(masked_target(full, self.cfg.background), self.loss.smooth_max_std)
+            self.flat_cache[key] = flat_pixels(masked_target(full, self.cfg.background), self.loss.smooth_max_std)
         flat = self.flat_cache[key]
         if window is None:
             return flat

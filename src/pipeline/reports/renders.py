@@ -8,7 +8,7 @@ Normals are shown in the camera frame with OpenGL-style axes (x right, y up, z t
 viewer) mapped to RGB as ``(n + 1) / 2``: a surface facing the camera is light blue.
 
 ``reports/renders/SCENE_heldout.png`` (:func:`heldout_overlay`): a few views not used for
-training (the ones the ``evaluate`` stage scores, :func:`pipeline.data.heldout.load_heldout`),
+training (the ones the ``score`` stage scores, :func:`pipeline.data.heldout.load_heldout`),
 the mesh's ray-cast silhouette against the view's mask over the dimmed image: grey where both
 cover a pixel, red where only the mask does (missed), blue where only the mesh does (extra),
 with the mesh's mask IoU per view. Counts and IoU are taken at the held-out views' stored
@@ -29,9 +29,9 @@ from pipeline.data.heldout import HELDOUT_DIR, load_heldout
 from pipeline.errors import MissingInputError
 from pipeline.evaluation.gt import read_mesh
 from pipeline.evaluation.heldout import iou
-from pipeline.meshing.raycast import MeshCaster
-from pipeline.optimize.surfels import read_surfel_ply
 from pipeline.rasterizer import Camera, rasterize
+from pipeline.raycast import MeshCaster
+from pipeline.surfels import read_surfel_ply
 
 PANEL_WIDTH = 400  # px; scan24's four panels make a PNG of ~0.9 MB, its held-out grid ~0.3 MB
 LABELS = ("input view {view}", "surfels: colour", "surfels: normal", "mesh")

@@ -25,7 +25,7 @@ from pathlib import Path
 
 from pipeline.errors import MissingInputError
 from pipeline.evaluation.record import Chamfer, SceneMetrics
-from pipeline.reports.read import ReportError, read_json
+from pipeline.jsonfile import ReportError, read_json
 
 MEASURED = "measured here"
 PUBLISHED = "published"

@@ -25,7 +25,7 @@ from pipeline.config.mesh import MeshConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import merged_section
 from pipeline.evaluation.record import Chamfer
-from pipeline.reports.read import ReportError, read_json
+from pipeline.jsonfile import ReportError, read_json
 
 MVS_TSDF = "MVS + TSDF (classical)"
 FULL = "full method"

@@ -13,7 +13,7 @@ from pipeline.errors import ConfigError
 from pipeline.init.io import load_init_depths, stacked_depths_mm
 from pipeline.meshing import tsdf
 from pipeline.meshing.surfels import mesh_from_surfels
-from pipeline.optimize.surfels import read_surfel_ply
+from pipeline.surfels import read_surfel_ply
 
 
 def mesh_surfels_dir(scene_dir: str | Path, surfels_dir: str | Path, out_dir: str | Path, cfg: MeshConfig,

@@ -1,5 +1,5 @@
 """One optimize run from files to files: load the scene, the init cloud and the priors,
-train, write ``surfels.ply`` and ``train.json``, log the curves with dvclive."""
+train, write ``surfels.ply`` and ``train.json``, log the curves (DVCLive's layout)."""
 from __future__ import annotations
 
 import json
@@ -7,6 +7,7 @@ from dataclasses import asdict
 from pathlib import Path
 
 from pipeline import atomic
+from pipeline.curves import CurveLog, check_curves_dir
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.data.dtu import load_scene
@@ -14,9 +15,9 @@ from pipeline.data.scene import Scene, check_made_from
 from pipeline.errors import DegenerateResultError, OutputError
 from pipeline.init.io import read_ply
 from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_masks
-from pipeline.optimize.surfels import SurfelParams, write_splats_3dgs_ply, write_surfel_ply
-from pipeline.optimize.train import TrainResult, train
+from pipeline.optimize.train import CHECKPOINT_KIND, TrainResult, train
 from pipeline.optimize.views import TrainViews
+from pipeline.surfels import SurfelParams, write_splats_3dgs_ply, write_surfel_ply
 
 LOGGED_TERMS = ("total", "l1", "photo", "gcf", "mv", "mvgeo", "nor", "mvs", "dn", "dist", "mask", "surfels", "seconds")
 
@@ -48,26 +49,17 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
     """Train surfels for one scene and write ``out_dir/surfels.ply`` (2DGS layout, world mm),
     ``out_dir/splats_3dgs.ply`` (the same surfels for 3DGS viewers) and ``out_dir/train.json``
     (what was trained; no timings, so two runs give the same bytes). ``checkpoint`` (outside ``out_dir``) is resumed from when it matches and deleted
-    once the output is written; ``live_dir`` receives the dvclive curves."""
+    once the output is written (only if it is a gcgs checkpoint); ``live_dir`` receives the
+    curves (:mod:`pipeline.curves`; a resumed run keeps the rows before its checkpoint)."""
     out_dir, ckpt = Path(out_dir), Path(checkpoint)
-    for extra in (ckpt, live_dir):
-        if extra is not None and _inside(extra, out_dir):
-            raise OutputError(f"{extra}: lies inside the output folder {out_dir}, which is replaced when the run "
-                              "ends; put it beside the output")
-    with atomic.atomic_dir(out_dir, "surfels", inputs=(scene_dir, init_dir, priors_dir)) as tmp:
+    inputs = (scene_dir, init_dir, priors_dir)
+    check_side_paths(out_dir, inputs, checkpoint=ckpt, live_dir=live_dir)
+    with atomic.atomic_dir(out_dir, "surfels", inputs=inputs) as tmp:
         scene, surfels, views = load_training_inputs(scene_dir, init_dir, priors_dir, cfg, loss)
-
-        live = None
-        if live_dir is not None:
-            from dvclive import Live
-
-            live = Live(str(live_dir), save_dvc_exp=False, dvcyaml=None, report=None)
+        live = CurveLog(live_dir, "train", LOGGED_TERMS, inputs) if live_dir is not None else None
 
         def on_log(row: dict) -> None:
-            live.step = row["iteration"]
-            for k in LOGGED_TERMS:
-                if k in row:
-                    live.log_metric(f"train/{k}", row[k], plot=True)
+            live.log(row["iteration"], row)
 
         ckpt.parent.mkdir(parents=True, exist_ok=True)
         result = train(surfels, views, cfg, loss, checkpoint=ckpt, on_log=on_log if live else None, progress=progress)
@@ -89,13 +81,27 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
         write_surfel_ply(tmp / "surfels.ply", result.params, scene.norm_to_world)
         write_splats_3dgs_ply(tmp / "splats_3dgs.ply", result.params, scene.norm_to_world)  # for 3DGS viewers
         (tmp / "train.json").write_text(json.dumps(facts, indent=2, sort_keys=True) + "\n")
-    ckpt.unlink(missing_ok=True)  # finished: the output is the state now
+    if atomic.written_kind(ckpt) == CHECKPOINT_KIND:
+        ckpt.unlink()  # finished: the output is the state now
     return result
 
 
-def _inside(path: str | Path, folder: Path) -> bool:
-    p, f = Path(path).resolve(), folder.resolve()
-    return p == f or f in p.parents
+def check_side_paths(out_dir: str | Path, inputs, checkpoint: str | Path, live_dir: str | Path | None = None,
+                     metrics: str | Path | None = None) -> None:
+    """Refuse (one line, before any work) side paths of an optimize run that would lose data
+    or fail late: inside the output folder (replaced whole when the run ends), an input or
+    inside one, an existing file gcgs did not write (:func:`pipeline.atomic.check_output_file`),
+    a curves folder holding files that are not curves (:func:`pipeline.curves.check_curves_dir`)."""
+    out = Path(out_dir).resolve()
+    for extra in (checkpoint, live_dir, metrics):
+        if extra is not None and (Path(extra).resolve() == out or out in Path(extra).resolve().parents):
+            raise OutputError(f"{extra}: lies inside the output folder {out_dir}, which is replaced when the run "
+                              "ends; put it beside the output")
+    atomic.check_output_file(checkpoint, inputs, kind=CHECKPOINT_KIND)
+    if metrics is not None:
+        atomic.check_output_file(metrics, inputs)
+    if live_dir is not None:
+        check_curves_dir(live_dir, "train", LOGGED_TERMS, inputs)
 
 
 def default_side_paths(out_dir: str | Path) -> dict[str, Path]:

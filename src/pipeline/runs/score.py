@@ -3,7 +3,6 @@ where ground truth exists, else held-out-view mask IoU and masked PSNR (with the
 hull's IoU as the reference); and what the training cost (from the optimize stage)."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 from pipeline.config.evaluate import EvaluateConfig
@@ -14,10 +13,11 @@ from pipeline.data.heldout import load_heldout
 from pipeline.evaluation import dtu_eval, gt, seen
 from pipeline.evaluation.depth_error import depth_errors, gt_depths_mm
 from pipeline.evaluation.heldout import heldout_scores
-from pipeline.evaluation.record import MESH_KEYS, TIMING_KEYS, TRAIN_KEYS, Chamfer, HeldOut, SceneMetrics
-from pipeline.meshing.raycast import MeshCaster
+from pipeline.evaluation.record import MESH_KEYS, TIMING_KEYS, TRAIN_KEYS, Chamfer, HeldOut, MetricsError, SceneMetrics
 from pipeline.meshing.surfels import input_view_depths_mm
-from pipeline.optimize.surfels import read_surfel_ply
+from pipeline.raycast import MeshCaster
+from pipeline.jsonfile import read_json
+from pipeline.surfels import read_surfel_ply
 
 HELDOUT_WIDTH = 200  # px; the bundled scan24 held-out views are stored at 200x150
 
@@ -27,11 +27,10 @@ def scene_metrics(name: str, scene_dir: str | Path, src_dir: str | Path, gt_dir:
                   eval_cfg: EvaluateConfig, opt_cfg: OptimizeConfig, mesh_cfg: MeshConfig, input_views: list[int],
                   backend: str = "cpu", log=print) -> SceneMetrics:
     scene_dir, surfels_dir, mesh_dir = Path(scene_dir), Path(surfels_dir), Path(mesh_dir)
-    train = json.loads((surfels_dir / "train.json").read_text())
-    timing = json.loads(Path(train_timing).read_text())
-    mesh_facts = json.loads((mesh_dir / "mesh.json").read_text())
-    common = {"scene": name, "train": {k: train[k] for k in TRAIN_KEYS}, "timing": {k: timing[k] for k in TIMING_KEYS},
-              "mesh": {k: mesh_facts[k] for k in MESH_KEYS}}
+    common = {"scene": name,
+              "train": _facts(surfels_dir / "train.json", "training facts", TRAIN_KEYS, "gcgs optimize"),
+              "timing": _facts(Path(train_timing), "training timings", TIMING_KEYS, "gcgs optimize"),
+              "mesh": _facts(mesh_dir / "mesh.json", "mesh facts", MESH_KEYS, "gcgs mesh")}
     if gt_dir:
         scan_id = dtu.read_meta(scene_dir).get("scan_id")
         ground = gt.read_ground_truth(gt_dir, scan_id)
@@ -50,6 +49,15 @@ def scene_metrics(name: str, scene_dir: str | Path, src_dir: str | Path, gt_dir:
     mesh = MeshCaster(*gt.read_mesh(mesh_dir / "mesh.ply"))
     h = heldout_scores(params, scene, heldout, background=opt_cfg.background, backend=backend, mesh=mesh)
     return SceneMetrics(**common, heldout=HeldOut.parse(h, f"{name}: held-out scores"))
+
+
+def _facts(path: Path, what: str, keys: tuple[str, ...], made_by: str) -> dict:
+    """``keys`` of the JSON object at ``path``, which ``made_by`` writes."""
+    data = read_json(path, what, f"written by `{made_by}`")
+    missing = [k for k in keys if k not in data]
+    if missing:
+        raise MetricsError(f"{path}: {what} lack {', '.join(f'`{k}`' for k in missing)}")
+    return {k: data[k] for k in keys}
 
 
 def _input_depth_error(scene_dir: Path, surfels_dir: Path, gt_mesh: Path, mesh_cfg: MeshConfig,

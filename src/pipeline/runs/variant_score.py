@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 from pathlib import Path
 
+from pipeline import atomic
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.config.params import section
 from pipeline.config.variants import training_report, variant_configs
@@ -24,6 +25,7 @@ def score_variant(name: str, variant: str, params: dict, scene_dir: str | Path, 
     out_dir, report = Path(out_dir), Path(report)
     surfels_dir, mesh_dir = out_dir / "surfels", out_dir / "mesh"
     backend = resolve_backend(opt.backend)
+    atomic.check_output_file(report, inputs=(scene_dir, src_dir, gt_dir, surfels_dir, init_dirs[v.init]))
     mesh_surfels_dir(scene_dir, surfels_dir, mesh_dir, mesh_cfg, backend, init_dirs[v.init])
     metrics = scene_metrics(name, scene_dir, src_dir, gt_dir, surfels_dir, mesh_dir, training_report(report),
                             section(EvaluateConfig, "evaluate", params), opt, mesh_cfg, input_views, backend)

@@ -21,6 +21,7 @@ def train_variant(variant: str, params: dict, scene_dir: str | Path, init_dirs: 
     training time to :func:`~pipeline.config.variants.training_report` of ``report``."""
     v, opt, loss = variant_training(params, variant)
     out_dir = Path(out_dir)
+    atomic.check_output_file(training_report(report), inputs=(scene_dir, init_dirs[v.init], priors_dir))
     with measure(reset_peak=False) as usage:
         result = run_optimize(scene_dir, init_dirs[v.init], priors_dir, out_dir / "surfels", opt, loss,
                               checkpoint=out_dir.parent / f".{out_dir.name}.ckpt.pt", live_dir=None, progress=False)

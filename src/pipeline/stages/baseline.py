@@ -37,14 +37,16 @@ def run(args: argparse.Namespace) -> int:
     init_cfg = section(InitConfig, "init", params)
     entry = scene_entry(params, args.scene)
     name = args.scene
+    out = Path(args.report or f"reports/baseline/{name}.json")
+    scene_dir, init_dir = args.scene_dir or f"data/scenes/{name}", args.init_dir or f"data/init/{name}"
+    atomic.check_output_file(out, inputs=(scene_dir, init_dir, entry.gt))  # before the work
     usage_path = Path(args.init_metrics or f"reports/init/{name}.json")
     init_usage = json.loads(usage_path.read_text()) if usage_path.is_file() else None
-    report = baseline.baseline_scene(args.scene_dir or f"data/scenes/{name}", args.init_dir or f"data/init/{name}",
+    report = baseline.baseline_scene(scene_dir, init_dir,
                                      args.out_dir or f"data/baseline/{name}", entry.gt, init_cfg, eval_cfg,
                                      section(MeshConfig, "mesh", params), init_usage,
                                      log=lambda m: print(f"[baseline] {name}: {m}", flush=True))
     report = {"scene": name, **provenance(), **report}
-    out = Path(args.report or f"reports/baseline/{name}.json")
     atomic.write_text(out, json.dumps(report, indent=2) + "\n")
     print(f"[baseline] {name}: wrote {out}")
     failed = baseline.failed_steps(report)

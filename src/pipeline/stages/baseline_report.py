@@ -22,6 +22,7 @@ def run(args: argparse.Namespace) -> int:
     names = list(load_params(args.params).get("scenes") or {})
     if not names:
         raise ValueError("params `scenes` is empty: no baseline to combine")
+    atomic.check_output_file(args.out, inputs=(args.reports_dir,))
     reports = {}
     for name in names:
         path = Path(args.reports_dir) / f"{name}.json"

@@ -27,7 +27,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="scan number of the GT files (default: scene.json, else the only one in the GT folder)")
     p.add_argument("--cull", choices=("input", "all", "none"), default=None,
                    help="mask culling views (default: params evaluate.cull_views)")
-    p.add_argument("--views", type=int, nargs="+", default=None, help="input views (default: params data.views)")
+    p.add_argument("--views", type=int, nargs="+", default=None,
+                   help="input views (default: those the scene was prepared with, its scene.json `views`; "
+                        "for a scene that records none, params data.views)")
     p.add_argument("--seed", type=int, default=0, help="seed of the downsampling order")
     p.add_argument("--params", default=None, help="params.yaml to read `evaluate` and `data` from")
     p.add_argument("--accuracy-by-mesh", default=None, metavar="REFERENCE",
@@ -38,16 +40,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    atomic.check_output_file(args.out, inputs=(args.mesh, args.accuracy_by_mesh))
+    atomic.check_output_file(args.out, inputs=(args.mesh, args.accuracy_by_mesh, args.scene, args.gt))
     if not (args.within_mm > 0 and math.isfinite(args.within_mm)):
         raise InputError(f"--within-mm must be a positive distance in mm, got {args.within_mm}")
     params = load_params(args.params)
     cfg = section(EvaluateConfig, "evaluate", params, {"cull_views": args.cull})
-    views = section(DataConfig, "data", params, {"views": args.views}).views
 
     scene = Path(args.scene)
     if not scene.is_dir():
         raise MissingInputError(f"{scene}: scene folder not found")
+    views = section(DataConfig, "data", params, {"views": args.views or dtu.prepared_views(scene)}).views
     scan_id = args.scan_id if args.scan_id is not None else dtu.read_meta(scene).get("scan_id")
     ground = gt.read_ground_truth(args.gt or scene / "gt", scan_id)
     print(f"[evaluate] GT scan {ground.scan_id}: {len(ground.points_mm)} points, ObsMask {ground.obs_mask.shape} "

@@ -28,7 +28,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     cfg = section(InitConfig, "init", load_params(args.params), {"backend": args.backend, "mast3r.model": args.model})
     if args.metrics:
-        atomic.check_output_file(args.metrics)
+        atomic.check_output_file(args.metrics, inputs=(args.scene, args.model))
     with measure(reset_peak=False) as usage:
         _, info = run_init(args.scene, args.out_dir, cfg)
     print(f"init {cfg.backend}: {info['num_points']} points in {usage.wall_s:.2f} s "

@@ -8,6 +8,7 @@ import json
 
 from pipeline import atomic
 from pipeline.config.data import DataConfig
+from pipeline.data import dtu
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.config.mesh import MeshConfig
 from pipeline.config.params import load_params, section
@@ -20,14 +21,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--scene", required=True, help="prepared scene folder (masks for culling, as the method's)")
     p.add_argument("--out-dir", required=True, help="writes mesh.ply")
     p.add_argument("--report", required=True, help="metrics JSON to write")
-    p.add_argument("--views", type=int, nargs="+", default=None, help="input views (default: data.views)")
+    p.add_argument("--views", type=int, nargs="+", default=None, help="input views (default: the scene's own, else data.views)")
     p.add_argument("--params", default=None, help="params.yaml (default: ./params.yaml)")
 
 
 def run(args: argparse.Namespace) -> int:
-    atomic.check_output_file(args.report)
+    atomic.check_output_file(args.report, inputs=(args.synth_dir, args.scene))
     params = load_params(args.params)
-    views = section(DataConfig, "data", params, {"views": args.views}).views
+    views = section(DataConfig, "data", params, {"views": args.views or dtu.prepared_views(args.scene)}).views
     report = {"scene": args.name, **run_limit(args.synth_dir, args.scene, args.out_dir,
                                               section(EvaluateConfig, "evaluate", params),
                                               section(MeshConfig, "mesh", params), views)}

@@ -1,25 +1,27 @@
 """``gcgs prepare``: load a capture (DTU scan, COLMAP or nerfstudio folder; docs/inputs.md), check it, and write the training views at the
 training resolution (intrinsics scaled consistently) as a new DTU-layout scene
-(:mod:`pipeline.data.prepare`). Views and size default to params ``data``; ``--width``
+(:mod:`pipeline.data.prepare`). Views default to params ``data.views`` for a DTU scan and
+to every image for a COLMAP or nerfstudio capture; size defaults to params ``data``; ``--width``
 alone derives the height from the source's aspect ratio, and a size in another aspect
 ratio is refused.
 """
 from __future__ import annotations
 
 import argparse
+from dataclasses import replace
 
 import numpy as np
 
 from pipeline.config.data import DataConfig
 from pipeline.config.params import load_params, section
-from pipeline.data.prepare import height_for_width, prepare_scene
+from pipeline.data.prepare import height_for_width, input_views, prepare_scene
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--src", required=True, help="capture folder: DTU scan, COLMAP (images/, sparse/0/) or nerfstudio (transforms.json)")
     p.add_argument("--out", required=True, help="output scene folder")
     p.add_argument("--name", default=None, help="scene name (default: from scene.json or the folder)")
-    p.add_argument("--views", type=int, nargs="+", default=None, help="view ids to train on (default: data.views)")
+    p.add_argument("--views", type=int, nargs="+", default=None, help="view ids to train on (default: data.views for a DTU scan, every image of any other capture)")
     p.add_argument("--width", type=int, default=None,
                    help="training width (default: data.width); alone, the height keeps the source's aspect")
     p.add_argument("--height", type=int, default=None, help="training height (default: data.height)")
@@ -35,8 +37,8 @@ def run(args: argparse.Namespace) -> int:
     height = args.height
     if args.width is not None and height is None:
         height = height_for_width(args.src, args.width)
-    cfg = section(DataConfig, "data", load_params(args.params),
-                  {"views": args.views, "width": args.width, "height": height})
+    cfg = section(DataConfig, "data", load_params(args.params), {"width": args.width, "height": height})
+    cfg = replace(cfg, views=input_views(args.src, args.views, cfg.views))
     scene = prepare_scene(args.src, args.out, cfg, name=args.name, use_masks=not args.no_masks, sphere=args.sphere)
     n_fg = "no masks" if scene.masks is None else f"mask coverage {np.mean(scene.masks):.1%}"
     print(f"prepared {scene.name}: views {scene.view_ids} at {cfg.width}x{cfg.height}, {n_fg} -> {args.out}")

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from pipeline import atomic
 from pipeline.config.data import DataConfig
+from pipeline.data import dtu
 from pipeline.config.evaluate import EvaluateConfig
 from pipeline.config.mesh import MeshConfig
 from pipeline.config.optimize import OptimizeConfig
@@ -29,13 +30,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    atomic.check_output_file(args.out, inputs=(args.train_timing,))
+    atomic.check_output_file(args.out, inputs=(args.train_timing, args.scene, args.surfels_dir, args.mesh_dir))
     params = load_params(args.params)
     entry = scene_entry(params, args.name)
     opt = section(OptimizeConfig, "optimize", params)
     metrics = scene_metrics(args.name, args.scene, entry.src, entry.gt, args.surfels_dir, args.mesh_dir,
                             args.train_timing, section(EvaluateConfig, "evaluate", params), opt,
-                            section(MeshConfig, "mesh", params), section(DataConfig, "data", params).views,
+                            section(MeshConfig, "mesh", params), dtu.prepared_views(args.scene) or section(DataConfig, "data", params).views,
                             resolve_backend(opt.backend))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     metrics.write(args.out)

@@ -24,6 +24,8 @@ def run(args: argparse.Namespace) -> int:
     scenes = load_params(args.params).get("scenes") or {}
     commit = provenance()["commit"]
     # Both texts are built before either file is written: bad input leaves no half output.
+    for out in (args.out_md, args.out_csv):
+        atomic.check_output_file(out, inputs=(args.metrics_dir, args.baseline_dir, args.published))
     table = build_table1(scenes, args.metrics_dir, args.baseline_dir, args.published, commit)
     md, csv = markdown(table, commit), csv_text(table)
     atomic.write_text(args.out_md, md)

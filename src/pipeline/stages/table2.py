@@ -28,6 +28,9 @@ def run(args: argparse.Namespace) -> int:
     params = load_params(args.params)
     ablation = section(AblationConfig, "ablation", params)
     scenes = section(SynthConfig, "synth", params).scenes
+    for out in (args.out_md, args.out_csv):
+        atomic.check_output_file(out, inputs=(args.metrics_dir, args.variants_dir, args.baseline_dir, args.limit_dir,
+                                              args.published))
     rows = build_table2(params, scenes, ablation.run, ablation.variants, args.metrics_dir, args.variants_dir,
                         args.baseline_dir, args.limit_dir)
     md = markdown(rows, scenes, provenance()["commit"], read_published_ablation(args.published))

@@ -30,7 +30,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    atomic.check_output_file(args.out)
+    atomic.check_output_file(args.out, inputs=(args.init_dir, args.scene))
     t0 = time.perf_counter()
     cfg = section(MeshConfig, "mesh", load_params(args.params),
                   {"voxel_norm": args.voxel_norm, "trunc_norm": args.trunc_norm,

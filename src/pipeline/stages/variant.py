@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 
 from pipeline.config.data import DataConfig
+from pipeline.data import dtu
 from pipeline.config.params import load_params, section
 from pipeline.config.scenes import scene_entry
 from pipeline.config.variants import init_sources
@@ -23,6 +24,6 @@ def run(args: argparse.Namespace) -> int:
     entry = scene_entry(params, args.name)
     m = run_variant(args.name, args.variant, params, args.scene, entry.src, entry.gt,
                     init_sources(args.init_dir, args.baseline_dir), args.priors_dir, args.out_dir, args.report,
-                    section(DataConfig, "data", params).views)
+                    dtu.prepared_views(args.scene) or section(DataConfig, "data", params).views)
     print(f"variant {args.variant} on {args.name}: {m.chamfer.overall_mm if m.chamfer else None} mm overall -> {args.report}")
     return 0

@@ -21,7 +21,7 @@ import numpy as np
 import open3d as o3d
 
 from pipeline import geometry
-from pipeline.meshing.raycast import MeshCaster
+from pipeline.raycast import MeshCaster
 from pipeline.synth import shapes, texture
 
 BACKGROUND_RGB = (0.03, 0.03, 0.03)  # DTU's black backdrop

@@ -1,5 +1,5 @@
-"""Reading the pipeline's reports (the per-scene metrics JSON and its kin) for the tables
-and the index: one place that names a missing file or figure."""
+"""Reading the JSON files the pipeline writes (metrics, timings, reports) for the scoring
+and the tables: one place that names a missing or malformed file."""
 from __future__ import annotations
 
 import json

@@ -1,142 +1,15 @@
-"""Trainable 2D Gaussian surfels: parameters, initialisation from an init cloud, PLY I/O.
-
-Frame and units: training runs in the scene's **normalised frame** (the unit sphere of
-``scale_mat``: ``x_world_mm = norm_to_world @ x_norm``), so learning rates, thresholds and
-sizes mean the same on a 5 mm and a 500 mm object. Files are written in the **world frame,
-mm** (centres and scales multiplied by the scale_mat radius), so that a surfel PLY overlays
-the mesh and the ground truth.
-
-Parameters (as 2DGS): ``means (P,3)``, ``log_scales (P,2)``, ``quats (P,4)`` (wxyz, not
-necessarily unit), ``opacity_logits (P,)``, ``sh_dc (P,1,3)``, ``sh_rest (P,K-1,3)``.
-"""
+"""Surfel PLY files, in the world frame (mm): the 2DGS ``point_cloud.ply`` layout (read and
+write) and the 3DGS layout for viewers (write only)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial import cKDTree
 
-from pipeline import atomic
-from pipeline.errors import InputError
-from pipeline.geometry import rotmat_to_quat
-from pipeline.rasterizer import Surfels
-from pipeline.rasterizer.project import SH_C0
-
-PARAM_NAMES = ("means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest")
-
-
-class SurfelInitError(InputError):
-    """The init cloud cannot seed surfels (names the file and the problem)."""
-
-
-def rgb_to_sh_dc(rgb: np.ndarray) -> np.ndarray:
-    """Colour in [0, 1] -> the SH DC coefficient whose evaluation gives that colour."""
-    return (np.asarray(rgb, np.float64) - 0.5) / SH_C0
-
-
-def frames_from_normals(normals: np.ndarray) -> np.ndarray:
-    """``(N, 3)`` unit normals -> ``(N, 3, 3)`` rotations whose third column is the normal
-    (tangent axes: any orthonormal pair; a surfel is isotropic at init)."""
-    n = np.asarray(normals, np.float64)
-    n = n / np.linalg.norm(n, axis=1, keepdims=True)
-    # Helper axis least aligned with n, so the cross product never degenerates.
-    helper = np.zeros_like(n)
-    helper[np.arange(len(n)), np.argmin(np.abs(n), axis=1)] = 1.0
-    tu = np.cross(helper, n)
-    tu /= np.linalg.norm(tu, axis=1, keepdims=True)
-    tv = np.cross(n, tu)
-    return np.stack([tu, tv, n], axis=2)
-
-
-def random_quats(n: int, rng: np.random.Generator) -> np.ndarray:
-    """Uniformly random unit quaternions (2DGS draws random rotations)."""
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return q * np.where(q[:, :1] < 0, -1.0, 1.0)
-
-
-def knn_scales(points: np.ndarray, k: int = 3) -> np.ndarray:
-    """2DGS's initial scale: ``sqrt(mean squared distance to the k nearest neighbours)``.
-
-    Coincident points would give 0; the floor is a thousandth of the cloud's median
-    spacing (or 1e-7 for a single point), so every log-scale is finite."""
-    n = len(points)
-    if n == 1:
-        return np.full(1, 1e-2)
-    kk = min(k, n - 1)
-    d, _ = cKDTree(points).query(points, k=kk + 1)
-    d = d[:, 1:]
-    s = np.sqrt(np.mean(d * d, axis=1))
-    floor = max(float(np.median(s)) * 1e-3, 1e-7)
-    return np.maximum(s, floor)
-
-
-@dataclass
-class SurfelParams:
-    """The optimised tensors (normalised frame), each ``requires_grad`` leaf."""
-
-    means: torch.Tensor
-    log_scales: torch.Tensor
-    quats: torch.Tensor
-    opacity_logits: torch.Tensor
-    sh_dc: torch.Tensor
-    sh_rest: torch.Tensor
-
-    @property
-    def num(self) -> int:
-        return int(self.means.shape[0])
-
-    @property
-    def sh_degree_max(self) -> int:
-        return int(round(math.sqrt(self.sh_rest.shape[1] + 1))) - 1
-
-    def tensors(self) -> dict[str, torch.Tensor]:
-        return {k: getattr(self, k) for k in PARAM_NAMES}
-
-    def replace(self, new: dict[str, torch.Tensor]) -> None:
-        for k, v in new.items():
-            setattr(self, k, v)
-
-    def surfels(self, sh_degree: int, min_scale: float = 0.0) -> Surfels:
-        """Activated surfels for the rasterizer (normalised frame)."""
-        features = torch.cat([self.sh_dc, self.sh_rest], dim=1)
-        scales = torch.exp(self.log_scales)
-        if min_scale > 0:
-            scales = scales.clamp_min(min_scale)
-        return Surfels(self.means, self.quats, scales, torch.sigmoid(self.opacity_logits), features, sh_degree=sh_degree)
-
-
-def init_params(points_norm: np.ndarray, normals: np.ndarray | None, colors: np.ndarray, sh_degree: int,
-                opacity: float, rng: np.random.Generator, dtype=torch.float32, where: str = "init cloud") -> SurfelParams:
-    """Surfels seeded from a cloud (normalised frame): centres at the points, normal from
-    the point normal (random rotation when ``normals`` is None, as 2DGS), both log-scales
-    from :func:`knn_scales`, colour as SH DC (higher bands 0), opacity ``opacity``."""
-    points_norm = np.asarray(points_norm, np.float64)
-    n = len(points_norm)
-    if n == 0:
-        raise SurfelInitError(f"{where}: no point to seed surfels from (an init stage that matched nothing?)")
-    if not np.all(np.isfinite(points_norm)):
-        raise SurfelInitError(f"{where}: non-finite point coordinates")
-    if not 0 < opacity < 1:
-        raise ValueError(f"initial opacity must be in (0, 1), got {opacity}")
-    quats = random_quats(n, rng) if normals is None else rotmat_to_quat(frames_from_normals(normals))
-    log_s = np.log(knn_scales(points_norm))
-    k = (sh_degree + 1) ** 2
-
-    def leaf(a) -> torch.Tensor:
-        return torch.tensor(np.asarray(a), dtype=dtype).requires_grad_(True)
-
-    return SurfelParams(
-        means=leaf(points_norm),
-        log_scales=leaf(np.repeat(log_s[:, None], 2, axis=1)),
-        quats=leaf(quats),
-        opacity_logits=leaf(np.full(n, math.log(opacity / (1 - opacity)))),
-        sh_dc=leaf(rgb_to_sh_dc(colors)[:, None, :]),
-        sh_rest=leaf(np.zeros((n, k - 1, 3))),
-    )
+from pipeline import atomic, ply
+from pipeline.surfels.params import SurfelInitError, SurfelParams
 
 
 # 2DGS's point_cloud.ply layout: x y z nx ny nz f_dc_0..2 f_rest_0.. opacity scale_0..1 rot_0..3
@@ -228,9 +101,10 @@ def read_surfel_ply(path: str | Path, norm_to_world: np.ndarray, dtype=torch.flo
     num_rest = sum(n.startswith("f_rest_") for n in names) // 3
     if names != ply_attribute_names(num_rest):
         raise SurfelInitError(f"{path}: attributes {names[:12]}... are not the 2DGS surfel layout")
+    ply.check(raw, path, SurfelInitError)
     body = raw[end + len(b"end_header\n"):]
     if len(body) != count * len(names) * 4:
-        raise SurfelInitError(f"{path}: truncated ({len(body)} bytes for {count} surfels)")
+        raise SurfelInitError(f"{path}: {len(body)} bytes for {count} surfels; every property must be a float")
     data = np.frombuffer(body, "<f4").reshape(count, len(names)).astype(np.float64)
     if not np.all(np.isfinite(data)):
         bad = np.flatnonzero(~np.isfinite(data).all(axis=1))

@@ -1,5 +1,5 @@
-"""GCGS prior losses (see docs/priors.md): geometric-consistent features (Eq. 4-9) and
-normal consistency (Eq. 10-12). Differentiable torch functions; float32 or float64.
+"""GCGS geometric-consistent feature loss L_gcf (Eq. 4-9, see docs/priors.md) and the
+feature sampling it uses. Differentiable torch functions; float32 or float64.
 
 Conventions: OpenCV camera axes, ``world_to_cam`` maps world (mm) to camera, pixel
 centres at integer coordinates (``pipeline.geometry``). Depth maps are camera-frame z in
@@ -174,50 +174,3 @@ def gcf_loss(
     if return_terms:
         return loss, total, points.view(H, W)
     return loss
-
-
-_SOBEL_X = np.array([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
-
-
-def sobel(img: torch.Tensor) -> torch.Tensor:
-    """Sobel derivatives of a ``(C, H, W)`` image: ``(2, C, H, W)`` as (d/dx, d/dy).
-
-    The kernel is divided by 8 so that a linear ramp of slope 1 per pixel gives 1.
-    Borders replicate the edge pixels (gradients there are not used, see below).
-    """
-    C = img.shape[0]
-    kx = torch.as_tensor(_SOBEL_X, dtype=img.dtype, device=img.device)
-    k = torch.stack([kx, kx.t()]).unsqueeze(1).repeat(C, 1, 1, 1)  # (2C, 1, 3, 3)
-    x = F.pad(img.unsqueeze(0), (1, 1, 1, 1), mode="replicate")
-    g = F.conv2d(x, k, groups=C)  # (1, 2C, H, W) ordered (c0 dx, c0 dy, c1 dx, ...)
-    return g.view(C, 2, *img.shape[1:]).transpose(0, 1)
-
-
-def normal_consistency_losses(
-    n_render: torch.Tensor, n_prior: torch.Tensor, valid_mask: torch.Tensor
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Normal losses of GCGS Eq. 10-12: ``(L_nc, L_ngc)``.
-
-    ``L_nc`` = mean over valid pixels M of ``||n_render - n_prior||_1`` (sum of absolute
-    differences of the 3 components). ``L_ngc`` = mean of ``||S(n_render) - S(n_prior)||^2``
-    over the 6 Sobel derivatives (x and y of each component), taken over the pixels of M
-    whose whole 3x3 neighbourhood is in M, so that no derivative mixes in invalid pixels.
-    Both normal maps are ``(3, H, W)`` in the same (camera) frame; ``valid_mask`` is
-    ``(H, W)`` bool. An empty set gives 0.
-    """
-    if n_render.shape != n_prior.shape or n_render.shape[0] != 3 or n_render.shape[1:] != valid_mask.shape:
-        raise ValueError(
-            f"normal maps must both be (3, H, W) with an (H, W) mask; got {tuple(n_render.shape)}, "
-            f"{tuple(n_prior.shape)}, {tuple(valid_mask.shape)}"
-        )
-    m = valid_mask.to(device=n_render.device).bool()
-    n_prior = n_prior.to(n_render)
-    diff = (n_render - n_prior).abs().sum(0)
-    l_nc = diff[m].sum() / m.sum().clamp_min(1)
-    # 3x3 erosion of M: min-pool is -maxpool(-x); pad with "invalid" at the borders.
-    inner = -F.max_pool2d(-F.pad(m[None, None].float(), (1, 1, 1, 1), value=0.0), 3, stride=1)
-    inner = inner[0, 0] > 0.5
-    g = sobel(n_render) - sobel(n_prior)
-    gsq = (g * g).sum(dim=(0, 1))
-    l_ngc = gsq[inner].sum() / inner.sum().clamp_min(1)
-    return l_nc, l_ngc

@@ -1,4 +1,4 @@
-"""PGSR multi-view consistency (pipeline.mvphoto): homographies against ray-plane
+"""PGSR multi-view consistency (pipeline.losses.multiview): homographies against ray-plane
 intersection, the loss against a loop-based numpy reference, float64 gradchecks, the
 minimum at the true plane of an analytic textured-plane scene, bad input, and the
 forward-backward occlusion check."""
@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.mvphoto import (
+from pipeline.losses.multiview import (
     MIN_Z,
     SourceView,
     best_source_ncc,
