@@ -71,3 +71,28 @@ def tiny_config(**over) -> tuple[OptimizeConfig, LossConfig]:
         return {**base, **mine, **{k: {**base[k], **v} for k, v in mine.items() if isinstance(v, dict) and k in base}}
 
     return OptimizeConfig.default(**changed(OptimizeConfig, TINY_OPTIMIZE)), LossConfig.default(**changed(LossConfig, TINY_LOSS))
+
+
+def write_stage_inputs(root: Path) -> tuple[Path, Path]:
+    """The tiny problem written to disk as the optimize command reads it: ``root/scene`` (DTU
+    layout), ``root/init/points.ply``, the priors, and ``root/params.yaml`` for a 10-iteration
+    run (checkpoints every 4). Returns ``(root, priors_dir)``."""
+    import yaml
+
+    from pipeline.config.params import load_params
+    from pipeline.data import dtu
+    from pipeline.init.io import write_ply
+
+    scene, cloud, priors = tiny_problem(root)
+    ids = scene.view_ids
+    dtu.write_scene(root / "scene", images=dict(zip(ids, scene.images)), K=dict(zip(ids, scene.K)),
+                    world_to_cam=dict(zip(ids, scene.world_to_cam)), norm_to_world=scene.norm_to_world,
+                    masks=dict(zip(ids, scene.masks)), meta={"name": "tiny"})
+    write_ply(root / "init" / "points.ply", cloud)
+    params = load_params(Path(__file__).resolve().parents[1] / "params.yaml")
+    params["optimize"].update(iterations=10, checkpoint_every=4, init_voxel_norm=0.0, downscale=[[0.0, 1]],
+                              start={"gcf": 0, "nor": 0, "d": 3, "dn": 6, "mv": 7000})
+    params["optimize"]["densify"].update(start_iter=3, stop_iter=8, every=3)
+    params["mesh"]["init_depth_rel_tol"] = 0.0  # a cloud without depth maps: nothing for the mesh to merge
+    (root / "params.yaml").write_text(yaml.safe_dump(params))
+    return root, priors

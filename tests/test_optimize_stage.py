@@ -10,32 +10,15 @@ from pathlib import Path
 import pytest
 import yaml
 
-from optimize_scene import tiny_problem
+from optimize_scene import write_stage_inputs
 from pipeline import cli
 from pipeline.atomic import MARKER
-from pipeline.config.params import load_params
-from pipeline.data import dtu
-from pipeline.init.io import write_ply
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")
 def stage_inputs(tmp_path_factory):
-    root = tmp_path_factory.mktemp("stage")
-    scene, cloud, priors = tiny_problem(root)
-    ids = scene.view_ids
-    dtu.write_scene(root / "scene", images=dict(zip(ids, scene.images)), K=dict(zip(ids, scene.K)),
-                    world_to_cam=dict(zip(ids, scene.world_to_cam)), norm_to_world=scene.norm_to_world,
-                    masks=dict(zip(ids, scene.masks)), meta={"name": "tiny"})
-    write_ply(root / "init" / "points.ply", cloud)
-    params = load_params(REPO / "params.yaml")
-    params["optimize"].update(iterations=10, checkpoint_every=4, init_voxel_norm=0.0, downscale=[[0.0, 1]],
-                              start={"gcf": 0, "nor": 0, "d": 3, "dn": 6, "mv": 7000})
-    params["optimize"]["densify"].update(start_iter=3, stop_iter=8, every=3)
-    params["mesh"]["init_depth_rel_tol"] = 0.0  # a cloud without depth maps: nothing for the mesh to merge
-    (root / "params.yaml").write_text(yaml.safe_dump(params))
-    return root, priors
+    return write_stage_inputs(tmp_path_factory.mktemp("stage"))
 
 
 def _optimize(root: Path, priors: Path, out: str, *extra: str) -> int:

@@ -13,15 +13,11 @@ import tempfile
 from pathlib import Path
 
 import pytest
-import yaml
 
-from optimize_scene import tiny_problem
+from optimize_scene import write_stage_inputs
 from pipeline import atomic, cli
-from pipeline.config.params import load_params
 from pipeline.curves import CurveLog
-from pipeline.data import dtu
 from pipeline.errors import OutputError
-from pipeline.init.io import write_ply
 from test_atomic import tree_digest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -30,19 +26,7 @@ REPO = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory):
     """A tiny scene, init cloud and priors written to disk, and params for a 10-iteration run."""
-    root = tmp_path_factory.mktemp("side")
-    scene, cloud, priors = tiny_problem(root)
-    ids = scene.view_ids
-    dtu.write_scene(root / "scene", images=dict(zip(ids, scene.images)), K=dict(zip(ids, scene.K)),
-                    world_to_cam=dict(zip(ids, scene.world_to_cam)), norm_to_world=scene.norm_to_world,
-                    masks=dict(zip(ids, scene.masks)), meta={"name": "tiny"})
-    write_ply(root / "init" / "points.ply", cloud)
-    params = load_params(REPO / "params.yaml")
-    params["optimize"].update(iterations=10, checkpoint_every=4, init_voxel_norm=0.0, downscale=[[0.0, 1]],
-                              start={"gcf": 0, "nor": 0, "d": 3, "dn": 6, "mv": 7000})
-    params["optimize"]["densify"].update(start_iter=3, stop_iter=8, every=3)
-    (root / "params.yaml").write_text(yaml.safe_dump(params))
-    return root, priors
+    return write_stage_inputs(tmp_path_factory.mktemp("side"))
 
 
 def _optimize(root: Path, priors: Path, out: Path, **side: Path) -> int:

@@ -53,6 +53,17 @@ def _within(inner: Path, outer: Path) -> bool:
     return inner == outer or outer in inner.parents
 
 
+def overlapping_inputs(out: Path, inputs: Iterable[str | Path | None]) -> Iterator[tuple[str | Path, str]]:
+    """The inputs (as given) that the resolved output path ``out`` overlaps, each with how:
+    ``"is"``, ``"lies inside"`` (``out`` is under the input) or ``"holds"`` (the input is under ``out``)."""
+    for given in inputs:
+        if given is None:
+            continue
+        src = _resolved(given)
+        if _within(out, src) or _within(src, out):
+            yield given, "is" if out == src else ("lies inside" if _within(out, src) else "holds")
+
+
 def marker_kind(folder: Path) -> str | None:
     """The output kind recorded in ``folder``'s marker, ``None`` without a readable one."""
     try:
@@ -71,14 +82,9 @@ def check_output_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path
     if _within(cwd, out):
         raise OutputError(f"{out_dir}: output folder is the current folder or holds it; "
                           "replacing it would delete the current folder: choose a new folder")
-    for given in inputs:
-        if given is None:
-            continue
-        src = _resolved(given)
-        if _within(out, src) or _within(src, out):
-            where = "is" if out == src else ("lies inside" if _within(out, src) else "holds")
-            raise OutputError(f"{out_dir}: output folder {where} the input {given}; "
-                              "writing it would destroy the input: choose another output folder")
+    for given, where in overlapping_inputs(out, inputs):
+        raise OutputError(f"{out_dir}: output folder {where} the input {given}; "
+                          "writing it would destroy the input: choose another output folder")
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise OutputError(f"{out_dir}: output path exists and is not a folder; remove it or choose another path")
     if out.is_dir() and os.path.ismount(out):
@@ -299,13 +305,10 @@ def check_output_file(path: str | Path, inputs: Iterable[str | Path | None] = ()
     out = _resolved(path)
     if out.is_dir():
         raise OutputError(f"{path}: output file path is a folder; give a file name")
-    for given in inputs:
-        if given is None:
-            continue
-        src = _resolved(given)
-        if out == src:
+    for given, where in overlapping_inputs(out, inputs):
+        if where == "is":
             raise OutputError(f"{path}: output file is the input {given}; writing it would destroy the input")
-        if _within(out, src):
+        if where == "lies inside":
             raise OutputError(f"{path}: output file lies inside the input folder {given}; "
                               "writing it would change the input: choose a path outside it")
     if out.is_file() and out.stat().st_size > 0:

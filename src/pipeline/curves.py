@@ -58,13 +58,8 @@ def check_curves_dir(folder: str | Path, group: str, terms: Iterable[str],
     folder = Path(os.path.abspath(Path(folder).expanduser())).resolve()
     if folder.exists() and not folder.is_dir():
         raise OutputError(f"{shown}: curves folder path exists and is not a folder; choose another path")
-    for given in inputs:
-        if given is None:
-            continue
-        src = Path(os.path.abspath(Path(given).expanduser())).resolve()
-        if folder == src or src in folder.parents or folder in src.parents:
-            where = "is" if folder == src else ("lies inside" if src in folder.parents else "holds")
-            raise OutputError(f"{shown}: curves folder {where} the input {given}; choose another folder")
+    for given, where in atomic.overlapping_inputs(folder, inputs):
+        raise OutputError(f"{shown}: curves folder {where} the input {given}; choose another folder")
     summary = _summary_path(folder)
     if summary.exists() and not (summary.is_file() and _is_summary(summary, group)):
         raise OutputError(f"{summary}: exists and is not a gcgs curves summary; refusing to overwrite it: "
