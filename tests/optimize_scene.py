@@ -96,3 +96,19 @@ def write_stage_inputs(root: Path) -> tuple[Path, Path]:
     params["mesh"]["init_depth_rel_tol"] = 0.0  # a cloud without depth maps: nothing for the mesh to merge
     (root / "params.yaml").write_text(yaml.safe_dump(params))
     return root, priors
+
+
+def interrupt_training_at(monkeypatch, iteration: int):
+    """Make training raise KeyboardInterrupt (Ctrl-C) when it reaches ``iteration``; returns
+    a function that undoes it (for the rerun that resumes)."""
+    from pipeline.optimize.train import Trainer
+
+    step = Trainer.step
+
+    def interrupted(self):
+        if self.it == iteration:
+            raise KeyboardInterrupt
+        return step(self)
+
+    monkeypatch.setattr(Trainer, "step", interrupted)
+    return lambda: monkeypatch.setattr(Trainer, "step", step)

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from optimize_scene import write_stage_inputs
+from optimize_scene import interrupt_training_at, write_stage_inputs
 from pipeline import cli
 from pipeline.atomic import MARKER
 
@@ -76,23 +76,14 @@ def test_missing_priors_are_named(stage_inputs, tmp_path, capsys):
 
 
 def test_ctrl_c_is_one_line_naming_the_checkpoint_and_the_rerun_resumes(stage_inputs, capsys, monkeypatch):
-    from pipeline.optimize.train import Trainer
-
     root, priors = stage_inputs
-    step = Trainer.step
-
-    def interrupted_at_6(self):
-        if self.it == 6:
-            raise KeyboardInterrupt
-        return step(self)
-
-    monkeypatch.setattr(Trainer, "step", interrupted_at_6)
+    resume = interrupt_training_at(monkeypatch, 6)
     assert _optimize(root, priors, "ctrl_c") == 130
     lines = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
     assert len(lines) == 1, lines
     assert f"checkpoint {root / 'ctrl_c.pt'} (iteration 4) resumes it: rerun the same command" in lines[0]
     assert not (root / "ctrl_c").exists() and (root / "ctrl_c.pt").is_file()
-    monkeypatch.setattr(Trainer, "step", step)
+    resume()
     assert _optimize(root, priors, "ctrl_c") == 0
     assert json.loads((root / "ctrl_c_timing.json").read_text())["resumed_from"] == 4
     assert _optimize(root, priors, "uninterrupted") == 0

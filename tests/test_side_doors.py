@@ -14,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from optimize_scene import write_stage_inputs
+from optimize_scene import interrupt_training_at, write_stage_inputs
 from pipeline import atomic, cli
 from pipeline.curves import CurveLog
 from pipeline.errors import OutputError
@@ -234,20 +234,11 @@ def test_the_curves_match_dvclive_byte_for_byte(tmp_path):
 
 
 def test_a_resumed_run_keeps_the_whole_curve(inputs, tmp_path, capsys, monkeypatch):
-    from pipeline.optimize.train import Trainer
-
     root, priors = inputs
-    step = Trainer.step
-
-    def interrupted_at_6(self):
-        if self.it == 6:
-            raise KeyboardInterrupt
-        return step(self)
-
-    monkeypatch.setattr(Trainer, "step", interrupted_at_6)
+    resume = interrupt_training_at(monkeypatch, 6)
     side = {"checkpoint": tmp_path / "c.pt", "live_dir": tmp_path / "live", "metrics": tmp_path / "t.json"}
     assert _optimize(root, priors, tmp_path / "out", **side) == 130
-    monkeypatch.setattr(Trainer, "step", step)
+    resume()
     assert _optimize(root, priors, tmp_path / "out", **side) == 0
     whole = {"checkpoint": tmp_path / "c2.pt", "live_dir": tmp_path / "live2", "metrics": tmp_path / "t2.json"}
     assert _optimize(root, priors, tmp_path / "out2", **whole) == 0
