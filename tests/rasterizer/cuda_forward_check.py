@@ -3,10 +3,10 @@
 map by map, then each surfel alone, with and without the camera's skew, and gsplat's
 CUDA kernel against gsplat's own pure-torch rasteriser on the same projected surfels.
 
-    python scripts/cuda_forward_check.py OUT.json
+    python tests/rasterizer/cuda_forward_check.py OUT.json
 
-Needs CUDA and gsplat; run from the repository root with ``src`` and
-``tests/rasterizer`` importable (the script adds the latter).
+Needs CUDA and gsplat; run from the repository root with ``src`` importable. It lives
+beside the test whose scene it takes (``raster_helpers``), not in scripts/.
 """
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "rasterizer"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 from raster_helpers import random_camera, random_surfels  # noqa: E402
 
 from pipeline.rasterizer import Camera, Surfels, rasterize  # noqa: E402
