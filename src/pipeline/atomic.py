@@ -45,7 +45,8 @@ PARTIAL = ".gcgs-partial"  # in a temporary folder until it is swapped in
 FILE_XATTR = "user.gcgs.output"  # on every file gcgs writes, its kind: lets a later run replace it
 
 
-def _resolved(path: str | Path) -> Path:
+def resolved_path(path: str | Path) -> Path:
+    """``path`` absolute, user-expanded and with links resolved: the form every overlap check compares."""
     return Path(os.path.abspath(Path(path).expanduser())).resolve()
 
 
@@ -59,7 +60,7 @@ def overlapping_inputs(out: Path, inputs: Iterable[str | Path | None]) -> Iterat
     for given in inputs:
         if given is None:
             continue
-        src = _resolved(given)
+        src = resolved_path(given)
         if _within(out, src) or _within(src, out):
             yield given, "is" if out == src else ("lies inside" if _within(out, src) else "holds")
 
@@ -77,8 +78,8 @@ def check_output_dir(out_dir: str | Path, kind: str, inputs: Iterable[str | Path
     data: the current folder or one holding it, a path equal to, inside or holding an input,
     an existing file, or an existing non-empty folder that is not a gcgs ``kind`` output.
     Returns the resolved path. Cheap: stages call it before any long work."""
-    out = _resolved(out_dir)
-    cwd = _resolved(Path.cwd())
+    out = resolved_path(out_dir)
+    cwd = resolved_path(Path.cwd())
     if _within(cwd, out):
         raise OutputError(f"{out_dir}: output folder is the current folder or holds it; "
                           "replacing it would delete the current folder: choose a new folder")
@@ -302,7 +303,7 @@ def check_output_file(path: str | Path, inputs: Iterable[str | Path | None] = ()
     data or fail late: a folder, an input or a path inside an input folder, an existing
     non-empty file that gcgs did not write (or wrote as another ``kind``), a mount point, or
     a place that cannot be written. Cheap: stages call it before any long work."""
-    out = _resolved(path)
+    out = resolved_path(path)
     if out.is_dir():
         raise OutputError(f"{path}: output file path is a folder; give a file name")
     for given, where in overlapping_inputs(out, inputs):

@@ -55,7 +55,7 @@ def check_curves_dir(folder: str | Path, group: str, terms: Iterable[str],
     lies inside or holds an input, or holds a file the logger would replace that is not a
     curve of ours. Returns the resolved folder."""
     shown = folder
-    folder = Path(os.path.abspath(Path(folder).expanduser())).resolve()
+    folder = atomic.resolved_path(folder)
     if folder.exists() and not folder.is_dir():
         raise OutputError(f"{shown}: curves folder path exists and is not a folder; choose another path")
     for given, where in atomic.overlapping_inputs(folder, inputs):
