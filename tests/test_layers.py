@@ -11,8 +11,9 @@ ROOT = Path(__file__).resolve().parents[1] / "src" / "pipeline"
 # Lowest first; a package may import from any earlier layer.
 LAYERS = [
     {"errors", "npz", "measure", "losses"},
+    {"threads"},
     {"config", "geometry", "atomic", "jsonfile", "onnx_models", "rasterizer"},
-    {"ply", "curves", "rasterizer_simd", "raycast"},
+    {"ply", "curves", "raycast"},
     {"surfels"},
     {"data"},
     {"init", "priors"},

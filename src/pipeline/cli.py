@@ -8,6 +8,7 @@ import importlib
 import sys
 
 from pipeline.errors import InputError, Interrupted
+from pipeline.threads import configure_threads
 
 # name -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -39,6 +40,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "bench-layouts": ("pipeline.benchmarks.layouts", "one synthetic scene from the DTU, COLMAP and nerfstudio layouts: same Chamfer?"),
 }
 
+NO_THREADS = {"params"}  # composes YAML only
+
 
 def build_parser(only: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="gcgs", description=__doc__.split("\n")[0])
@@ -60,6 +63,8 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     module = importlib.import_module(COMMANDS[args.command][0])
     try:
+        if args.command not in NO_THREADS:
+            configure_threads()
         return int(module.run(args) or 0)
     except InputError as exc:
         # Bad input (SceneError, CameraError, ConfigError, OutputError ...) names the file and

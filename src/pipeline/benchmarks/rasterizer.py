@@ -10,7 +10,7 @@ the timed runs, per run): the per-surfel set-up and binning, the forward composi
 backward compositing, the per-surfel reduction, and the rest (the Python wrapper, torch's
 allocations and the cotangents' loss).
 
-The simd kernels (``pipeline.rasterizer_simd``: the cpu backend with its compositing kernels in
+The simd kernels (the ``simd`` backend, ``pipeline.rasterizer.simd``: the cpu backend with its compositing kernels in
 C++, float32) are timed alternated with the cpu backend in the same case, so their ratio is
 taken in one stretch of time on a machine whose speed drifts; skipped, with the reason, where
 they cannot be built.
@@ -43,7 +43,7 @@ from pipeline.measure import measure
 from pipeline.rasterizer import Surfels, rasterize
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu as cpu_backend
-from pipeline import rasterizer_simd as simd
+from pipeline.rasterizer import simd
 from pipeline.benchmarks.surfel_scenes import dtu_camera, object_surfels
 
 SIZES = [(200, 150), (400, 300), (800, 600)]
@@ -60,7 +60,7 @@ MAPS = ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "no
 # would not fit.
 REF_BYTES_PER_PAIR = 150
 REF_BLOCK = 8
-KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels.py; rasterizer_simd's C++ runners)
+KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels.py; rasterizer/simd.py's C++ runners)
     "set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles", "simd.depth_order"),
     "forward compositing": ("gather_entries", "forward", "simd.pack_surfels", "simd.forward_all"),
     "backward compositing": ("backward", "simd.backward_all"),
@@ -69,11 +69,11 @@ KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels
 
 
 def kernel_seconds(stats: pstats.Stats) -> dict[str, float]:
-    """cProfile's own seconds of each kernel (numba kernels of ``rasterizer/_kernels.py``, the C++ runners of ``rasterizer_simd``)."""
+    """cProfile's own seconds of each kernel (numba kernels of ``rasterizer/_kernels.py``, the C++ runners of ``rasterizer/simd.py``)."""
     out = {f: 0.0 for funcs in KERNEL_PARTS.values() for f in funcs}
     for (path, _line, name), (_cc, _nc, own, _cum, _callers) in stats.stats.items():
         path = path.replace(os.sep, "/")
-        key = name if path.endswith("rasterizer/_kernels.py") else f"simd.{name}" if path.endswith("rasterizer_simd/__init__.py") else None
+        key = name if path.endswith("rasterizer/_kernels.py") else f"simd.{name}" if path.endswith("rasterizer/simd.py") else None
         if key in out:
             out[key] += own
     return out
@@ -96,7 +96,7 @@ def _time_once(s: Surfels, cam, backend: str, cot: dict) -> tuple[float, float]:
     s = _leaves(s)
     kw = {"reference_block": REF_BLOCK} if backend == "reference" else {}
     t0 = time.perf_counter()
-    out = simd.rasterize(s, cam) if backend == "simd" else rasterize(s, cam, backend, **kw)
+    out = rasterize(s, cam, backend, **kw)
     t1 = time.perf_counter()
     loss = sum((getattr(out, k) * cot[k]).sum() for k in MAPS)
     loss.backward()
@@ -256,7 +256,7 @@ def _markdown(records: list[dict], meta: dict) -> str:
             "",
             "## The simd kernels against the cpu backend",
             "",
-            "The cpu backend with its two compositing kernels in C++ (`pipeline.rasterizer_simd`, float32 "
+            "The cpu backend with its two compositing kernels in C++ (the `simd` backend, float32 "
             "lanes; docs/rasterizer.md \"The simd kernels\"), each timed run preceded by a cpu run of the same "
             "case, so the ratio is taken in one stretch of time:",
             "",

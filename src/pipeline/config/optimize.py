@@ -153,7 +153,7 @@ class OptimizeConfig(FromConf):
     SECTION = "optimize"
 
     preset: str  # the name of the conf/optimize preset, for reports
-    backend: str  # auto (= cpu, also on a GPU: resolve_backend) | cpu | cuda | reference
+    backend: str  # auto (= simd where it builds, else cpu; also on a GPU: resolve_backend) | cpu | simd | cuda | reference
     iterations: int
     seed: int
     sh_degree: int  # the highest SH degree evaluated (0: view-independent colour)
@@ -182,7 +182,7 @@ class OptimizeConfig(FromConf):
     photo_reset: PhotoResetConfig
     crop: CropConfig
 
-    BACKENDS = ("auto", "cpu", "cuda", "reference")
+    BACKENDS = ("auto", "cpu", "simd", "cuda", "reference")
 
     def __post_init__(self) -> None:
         nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts,

@@ -1,4 +1,5 @@
-"""The ``cpu`` backend: one torch.autograd.Function around the numba kernels.
+"""The ``cpu`` backend: one torch.autograd.Function around the numba kernels (the ``simd``
+backend shares it, with its own compositing: :class:`Compositor`).
 
 Everything per surfel (ray transform, normal, support box) and per pixel (expected
 depth, world normal) is inside the kernels, forward and backward: on a loaded 2-core
@@ -171,13 +172,33 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     )  # fmt: skip
 
 
-class _Rasterize(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: Geometry, camera: Camera, depth_eps: float):
+class Compositor:
+    """The forward and backward compositing of a render, the part of a CPU backend that
+    differs: :class:`NumbaCompositor` (``cpu``) and ``simd.SimdCompositor`` (``simd``). The
+    set-up, the autograd Function and the per-surfel chain rule are shared."""
+
+    def prepare(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> Geometry:
+        raise NotImplementedError
+
+    def forward(self, ctx, geom: Geometry, camera: Camera, depth_eps: float, feat: np.ndarray) -> tuple[list[np.ndarray], tuple]:
+        """The seven maps, and what :meth:`backward` needs (its scratch given back when
+        ``ctx`` is freed)."""
+        raise NotImplementedError
+
+    def backward(self, geom: Geometry, camera: Camera, depth_eps: float, feat: np.ndarray, state: tuple,
+                 grads: list[np.ndarray], slots: np.ndarray) -> None:  # fmt: skip
+        """Fill ``slots``, one row of gradient sums per (tile, surfel) pair."""
+        raise NotImplementedError
+
+
+class NumbaCompositor(Compositor):
+    def prepare(self, means, quats, scales, opacities, camera):
+        return prepare(means, quats, scales, opacities, camera)
+
+    def forward(self, ctx, geom, camera, depth_eps, feat):
         H, W = camera.height, camera.width
-        C = colors.shape[1]
+        C = feat.shape[1]
         dtype = geom.Tm.dtype
-        feat = _np(colors)
         _, Rwc, _ = _camera_arrays(camera)
         maps = [np.empty((H, W, C), dtype)] + [np.empty((H, W), dtype) for _ in range(3)]
         maps += [np.empty((H, W, 3), dtype), np.empty((H, W, 3), dtype), np.empty((H, W), dtype)]
@@ -195,25 +216,41 @@ class _Rasterize(torch.autograd.Function):
             geom.tile_start, geom.worker_start, geom.worker_tiles, ent, Rwc, W, geom.n_tx, camera.near, camera.far,
             depth_eps, *maps, *aux, med_local, geom.rec_tile_start, rec, rec_start, rec_count,
         )  # fmt: skip
-        ctx.state = (geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count, ent)
+        return maps, (aux, med_local, rec, rec_start, rec_count, ent)
+
+    def backward(self, geom, camera, depth_eps, feat, state, grads, slots):
+        aux, med_local, rec, rec_start, rec_count, ent = state
+        _, Rwc, _ = _camera_arrays(camera)
+        K.backward(
+            geom.tile_start, geom.slot_of_entry, geom.worker_start, geom.worker_tiles, ent, Rwc, camera.width,
+            geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec, rec_start, rec_count, *grads, slots,
+        )  # fmt: skip
+
+
+NUMBA = NumbaCompositor()
+
+
+class _Rasterize(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: Geometry, camera: Camera, depth_eps: float,
+                compositor: Compositor):  # fmt: skip
+        feat = _np(colors)
+        maps, state = compositor.forward(ctx, geom, camera, depth_eps, feat)
+        ctx.state = (geom, camera, depth_eps, feat, state, compositor)
         ctx.save_for_backward(means, quats, scales)
         return tuple(torch.from_numpy(a) for a in maps)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
-        geom, camera, depth_eps, feat, aux, med_local, rec, rec_start, rec_count, ent = ctx.state
+        geom, camera, depth_eps, feat, state, compositor = ctx.state
         means, quats, scales = ctx.saved_tensors
         P, C = feat.shape
         Kc, Rwc, _ = _camera_arrays(camera)
         slot_spec = [((geom.num_pairs, K.S_FIXED + C), np.float64)]
         slot_buf = SCRATCH.take("backward", _carve_bytes(slot_spec))
         (slots,) = _carve(slot_buf, slot_spec)
-        K.backward(
-            geom.tile_start, geom.slot_of_entry, geom.worker_start, geom.worker_tiles, ent, Rwc, camera.width,
-            geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec, rec_start, rec_count,
-            *(_np(g) for g in grads), slots,
-        )  # fmt: skip
+        compositor.backward(geom, camera, depth_eps, feat, state, [_np(g) for g in grads], slots)
         dtype = geom.Tm.dtype
         out = [np.zeros((P, 3), dtype), np.zeros((P, 4), dtype), np.zeros((P, 2), dtype), np.zeros(P, dtype)]
         out += [np.zeros((P, C), dtype), np.zeros((P, 2), dtype)]
@@ -221,18 +258,19 @@ class _Rasterize(torch.autograd.Function):
             geom.emit_start, slots, _np(quats), _np(scales), _np(means), geom.Tm, geom.nrm, Kc, Rwc, *out
         )
         SCRATCH.give("backward", slot_buf)
-        return tuple(torch.from_numpy(a) for a in out) + (None, None, None)
+        return tuple(torch.from_numpy(a) for a in out) + (None, None, None, None)
 
 
 def render(
-    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera, depth_eps: float
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera, depth_eps: float,
+    compositor: Compositor = NUMBA,
 ) -> tuple[list[Tensor], Tensor, Tensor, Geometry]:
     """Maps ``[features, alpha, depth_expected, depth_median, normal_cam, normal_world,
     distortion]``, ``radii``, ``means2d`` and the geometry (for statistics)."""
-    geom = prepare(means, quats, scales, opacities, camera)
+    geom = compositor.prepare(means, quats, scales, opacities, camera)
     centre = geom.geo[:, K.GEO_CX : K.GEO_CY + 1].astype(geom.Tm.dtype)
     means2d = torch.from_numpy(centre).requires_grad_(torch.is_grad_enabled())
-    maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps)
+    maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps, compositor)
     return list(maps), torch.from_numpy(geom.radii), means2d, geom
 
 

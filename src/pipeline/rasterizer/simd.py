@@ -1,9 +1,5 @@
-"""The ``simd`` kernels: the ``cpu`` backend of :mod:`pipeline.rasterizer` with its two
-compositing kernels in C++.
-
-A package of its own, above the rasterizer, until training uses it: every training stage
-depends on the whole ``src/pipeline/rasterizer`` folder, so a file added there is a full
-repro (``dvc.yaml``).
+"""The ``simd`` backend of :mod:`pipeline.rasterizer`: the ``cpu`` backend with its two
+compositing kernels in C++, what ``auto`` picks wherever they build.
 
 The per-surfel set-up, the tile binning and the per-surfel chain rule are the ``cpu``
 backend's numba kernels (with a radix depth sort of their own, :func:`depth_order`, and one
@@ -15,9 +11,11 @@ of its tile (docs/rasterizer.md, "The simd kernels"). Float32 input only; arithm
 bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` for the median,
 ``rho3 <= rho2``) can fall on the other side.
 
-The source is compiled on first use by the system's C++ compiler (``$CXX``, else ``c++``) for
-the host CPU (``-march=native``) and cached in ``__pycache__`` next to this module, keyed by
-the source, compiler, flags and the CPU's feature flags. :func:`available` says whether it
+The source ships with the package and is compiled on first use by the system's C++ compiler
+(``$CXX``, else ``c++``) for the host CPU (``-march=native``). Builds are cached per machine
+(compiler version, flags, the CPU's feature flags) in :func:`cache_dirs`' first writable
+folder, so a checkout shared by nodes of several CPU types keeps one build per type; a new
+source replaces only the same machine's older build. :func:`available` says whether it
 built, and why not. One C++ call per thread, from a numba ``prange`` so that numba's OpenMP
 threads run them, each taking the next tile (largest first) from a shared counter until none
 is left; a tile is one call's sequential pass, so results do not depend on the number of
@@ -43,8 +41,7 @@ from torch import Tensor
 
 from pipeline.rasterizer import _kernels as K
 from pipeline.rasterizer import cpu
-from pipeline.rasterizer.project import colors_of
-from pipeline.rasterizer.types import Camera, RenderOutput, Surfels
+from pipeline.rasterizer.types import Camera
 
 SOURCE = Path(__file__).with_name("_simd.cpp")
 FLAGS = ("-O3", "-march=native", "-ffp-contract=fast", "-fPIC", "-shared", "-std=c++17")
@@ -81,13 +78,15 @@ def _compiler() -> str | None:
 
 
 def build(compiler: str, flags: tuple[str, ...], out_dir: Path) -> Path:
-    """Compile ``_simd.cpp`` with ``compiler`` and ``flags`` into ``out_dir`` (cached by a
-    hash of the source, the compiler's version, the flags and the CPU), return the library."""
+    """Compile ``_simd.cpp`` with ``compiler`` and ``flags`` into ``out_dir``, return the library.
+
+    Named ``_simd-<machine>-<source>.so``: ``<machine>`` hashes the compiler's version, the
+    flags and the CPU's feature flags, ``<source>`` the C++ source. An existing build is
+    reused; a new one replaces this machine's builds of other sources only."""
     version = subprocess.run([compiler, "--version"], capture_output=True, text=True, check=False).stdout
-    key = hashlib.sha256(
-        b"\0".join([SOURCE.read_bytes(), version.encode(), " ".join(flags).encode(), _cpu_flags().encode()])
-    ).hexdigest()[:16]
-    lib = out_dir / f"_simd-{key}.so"
+    machine = hashlib.sha256(b"\0".join([version.encode(), " ".join(flags).encode(), _cpu_flags().encode()]))
+    machine_key, source_key = machine.hexdigest()[:12], hashlib.sha256(SOURCE.read_bytes()).hexdigest()[:12]
+    lib = out_dir / f"_simd-{machine_key}-{source_key}.so"
     if lib.exists():
         return lib
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -101,10 +100,20 @@ def build(compiler: str, flags: tuple[str, ...], out_dir: Path) -> Path:
     finally:
         if os.path.exists(tmp):
             os.unlink(tmp)
-    for old in out_dir.glob("_simd-*.so"):  # builds of earlier sources (a process using one keeps its mapping)
+    for old in out_dir.glob(f"_simd-{machine_key}-*.so"):  # a process using one keeps its mapping
         if old != lib:
             old.unlink(missing_ok=True)
     return lib
+
+
+def cache_dirs() -> list[Path]:
+    """Where builds go, first writable wins: ``$GCGS_CACHE_DIR/simd`` if set, ``__pycache__``
+    beside this module (a checkout), the user's cache (an installed package), the temp folder."""
+    dirs = [Path(os.environ["GCGS_CACHE_DIR"]) / "simd"] if os.environ.get("GCGS_CACHE_DIR") else []
+    dirs.append(Path(__file__).with_name("__pycache__"))
+    dirs.append(Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "gcgs" / "simd")
+    dirs.append(Path(tempfile.gettempdir()) / f"gcgs-simd-{os.getuid() if hasattr(os, 'getuid') else 'user'}")
+    return dirs
 
 
 def load(lib_path: Path) -> ctypes.CDLL:
@@ -129,11 +138,17 @@ def library() -> ctypes.CDLL:
             compiler = _compiler()
             if compiler is None:
                 raise SimdUnavailable(f"no C++ compiler ({os.environ.get('CXX', 'c++')!r} not on PATH)")
-            cache = Path(__file__).with_name("__pycache__")
-            try:
-                lib_path = build(compiler, FLAGS, cache)
-            except PermissionError:
-                lib_path = build(compiler, FLAGS, Path(tempfile.gettempdir()) / "gcgs-simd")
+            if not SOURCE.is_file():
+                raise SimdUnavailable(f"the kernels' source {SOURCE} is missing from the installed package")
+            lib_path, errors = None, []
+            for folder in cache_dirs():
+                try:
+                    lib_path = build(compiler, FLAGS, folder)
+                    break
+                except OSError as err:  # not writable here: the next folder
+                    errors.append(f"{folder}: {err.strerror or err}")
+            if lib_path is None:
+                raise SimdUnavailable("no writable folder for the build (" + "; ".join(errors) + ")")
             _state["lib"] = load(lib_path)
         except (SimdUnavailable, OSError) as err:
             _state["error"] = str(err)
@@ -278,7 +293,7 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     decreasing cost (``worker_tiles``; ``worker_start`` is ``[0, n_tiles]``): the kernels' calls
     take the next tile from a shared counter, which balances the threads better than
     ``schedule_tiles``' fixed split (the results are the same: a tile is one call's sequential
-    pass). Both move into ``cpu.prepare`` when these kernels move into ``rasterizer/``."""
+    pass). The numba kernels keep their fixed split, which their tests pin bit for bit."""
     P = means.shape[0]
     Kc, Rwc, twc = cpu._camera_arrays(camera)
     Tm, nrm = np.empty((P, 9), np.float32), np.empty((P, 3), np.float32)
@@ -303,14 +318,16 @@ def _ptr(a: np.ndarray) -> int:
     return a.ctypes.data
 
 
-# Mirrors cpu._Rasterize but for the surfel rows, the records' layout and the compositing calls;
-# the two become one when these kernels move into rasterizer/ (an edit there is a full repro).
-class _Rasterize(torch.autograd.Function):
-    @staticmethod
-    def forward(ctx, means, quats, scales, opacities, colors, means2d, geom: cpu.Geometry, camera: Camera, depth_eps: float):
+class SimdCompositor(cpu.Compositor):
+    """The C++ compositing kernels in :class:`cpu.Compositor`'s place: float32 surfel rows
+    (:func:`pack_surfels`) and pair records of their own layout."""
+
+    def prepare(self, means, quats, scales, opacities, camera):
+        return prepare(means, quats, scales, opacities, camera)
+
+    def forward(self, ctx, geom, camera, depth_eps, feat):
         H, W = camera.height, camera.width
-        C = colors.shape[1]
-        feat = cpu._np(colors)
+        C = feat.shape[1]
         _, Rwc, _ = cpu._camera_arrays(camera)
         Rwc = np.ascontiguousarray(Rwc, np.float64)
         f32 = np.float32
@@ -319,7 +336,7 @@ class _Rasterize(torch.autograd.Function):
         n_rec, n_pairs = int(geom.rec_tile_start[-1]), geom.num_pairs
         specs = [((H, W), np.float64)] * 5 + [((H, W), np.int32)]
         specs += [((n_rec + RECORD_SLACK,), f32)] * 2 + [((n_pairs * K.TILE * RMASK_FIELDS,), np.uint16)]
-        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((means.shape[0], _surfel_cols(C)), f32)]
+        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((geom.Tm.shape[0], _surfel_cols(C)), f32)]
         scratch = cpu.SCRATCH.take("simd-forward", cpu._carve_bytes(specs))
         weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
         *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf = cpu._carve(scratch, specs)
@@ -329,35 +346,19 @@ class _Rasterize(torch.autograd.Function):
             numba.get_num_threads(), geom.tile_start, geom.worker_tiles, geom.tile_list, surf, C, Rwc, W, H, geom.n_tx, camera.near,
             camera.far, depth_eps, *maps, *aux, med_local, geom.rec_tile_start, rec_T, rec_A, rmask, rec_start, rec_count,
         )  # fmt: skip
-        ctx.state = (geom, camera, depth_eps, feat, aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc)
-        ctx.save_for_backward(means, quats, scales)
-        return tuple(torch.from_numpy(a) for a in maps)
+        return maps, (aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc)
 
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, *grads):
-        geom, camera, depth_eps, feat, aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc = ctx.state
-        means, quats, scales = ctx.saved_tensors
-        P, C = feat.shape
-        Kc, _, _ = cpu._camera_arrays(camera)
-        slot_spec = [((geom.num_pairs, K.S_FIXED + C), np.float64)]
-        slot_buf = cpu.SCRATCH.take("backward", cpu._carve_bytes(slot_spec))
-        (slots,) = cpu._carve(slot_buf, slot_spec)
-        g = [cpu._np(t) for t in grads]  # float32, as the maps
+    def backward(self, geom, camera, depth_eps, feat, state, grads, slots):
+        aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc = state
         _, backward_all = _runners()
         backward_all(
-            numba.get_num_threads(), geom.tile_start, geom.slot_of_entry, geom.worker_tiles, geom.tile_list, surf, C, Rwc, camera.width,
-            camera.height, geom.n_tx, camera.near, camera.far, depth_eps, *aux, med_local, rec_T, rec_A, rmask,
-            rec_start, rec_count, *g, slots,
+            numba.get_num_threads(), geom.tile_start, geom.slot_of_entry, geom.worker_tiles, geom.tile_list, surf,
+            feat.shape[1], Rwc, camera.width, camera.height, geom.n_tx, camera.near, camera.far, depth_eps, *aux,
+            med_local, rec_T, rec_A, rmask, rec_start, rec_count, *grads, slots,
         )  # fmt: skip
-        f32 = np.float32
-        out = [np.zeros((P, 3), f32), np.zeros((P, 4), f32), np.zeros((P, 2), f32), np.zeros(P, f32)]
-        out += [np.zeros((P, C), f32), np.zeros((P, 2), f32)]
-        K.reduce_and_chain(
-            geom.emit_start, slots, cpu._np(quats), cpu._np(scales), cpu._np(means), geom.Tm, geom.nrm, Kc, Rwc, *out
-        )
-        cpu.SCRATCH.give("backward", slot_buf)
-        return tuple(torch.from_numpy(a) for a in out) + (None, None, None)
+
+
+SIMD = SimdCompositor()
 
 
 def render(
@@ -366,16 +367,20 @@ def render(
     """:func:`cpu.render` with the C++ compositing kernels; float32 tensors, at most
     :data:`MAX_CHANNELS` feature channels. Raises :class:`SimdUnavailable` if they cannot
     be built, ``ValueError`` on other input."""
-    if means.dtype != torch.float32 or colors.dtype != torch.float32:
-        raise ValueError(f"the simd kernels take float32 surfels, got {means.dtype} / {colors.dtype} (use the cpu backend)")
-    if colors.shape[1] > MAX_CHANNELS:
-        raise ValueError(f"the simd kernels take at most {MAX_CHANNELS} feature channels, got {colors.shape[1]}")
+    reason = unsuited(means, colors)
+    if reason:
+        raise ValueError(reason)
     library()
-    geom = prepare(means, quats, scales, opacities, camera)
-    centre = geom.geo[:, K.GEO_CX : K.GEO_CY + 1].astype(np.float32)
-    means2d = torch.from_numpy(centre).requires_grad_(torch.is_grad_enabled())
-    maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps)
-    return list(maps), torch.from_numpy(geom.radii), means2d, geom
+    return cpu.render(means, quats, scales, opacities, colors, camera, depth_eps, SIMD)
+
+
+def unsuited(means: Tensor, colors: Tensor) -> str:
+    """Why these surfels cannot go through the simd kernels (``""`` when they can)."""
+    if means.dtype != torch.float32 or colors.dtype != torch.float32:
+        return f"the simd kernels take float32 surfels, got {means.dtype} / {colors.dtype} (use the cpu backend)"
+    if colors.shape[1] > MAX_CHANNELS:
+        return f"the simd kernels take at most {MAX_CHANNELS} feature channels, got {colors.shape[1]}"
+    return ""
 
 
 def exp(x: np.ndarray) -> np.ndarray:
@@ -384,11 +389,3 @@ def exp(x: np.ndarray) -> np.ndarray:
     out = np.empty_like(x)
     library().simd_exp(_ptr(x), _ptr(out), x.size)
     return out
-
-
-def rasterize(surfels: Surfels, camera: Camera, *, depth_eps: float = 1e-6) -> RenderOutput:
-    """:func:`pipeline.rasterizer.rasterize` with ``backend="cpu"``, on the simd kernels."""
-    maps, radii, means2d, _ = render(
-        surfels.means, surfels.quats, surfels.scales, surfels.opacities, colors_of(surfels, camera), camera, depth_eps
-    )
-    return RenderOutput(*maps, radii=radii, means2d=means2d)
