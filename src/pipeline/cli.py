@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "synth": ("pipeline.stages.synth", "render a synthetic scene with exact ground truth"),
     "evaluate": ("pipeline.stages.evaluate", "DTU Chamfer distance of a mesh (mm)"),
     "init": ("pipeline.stages.init", "initial point cloud of a scene (mvs, sfm, mast3r or random)"),
+    "masks": ("pipeline.stages.masks", "object masks derived per input view for a scene without masks (new scene)"),
     "tsdf": ("pipeline.stages.tsdf", "TSDF-fuse an init folder's depth maps into a cleaned mesh (mm)"),
     "baseline": ("pipeline.stages.baseline", "one scene's init clouds of every backend and MVS+TSDF mesh vs GT, timed"),
     "baseline-report": ("pipeline.stages.baseline_report", "combine the per-scene baseline reports into one table"),

@@ -1,11 +1,11 @@
-"""Object masks derived per input view for captures without masks (issue 58, first step).
+"""Object masks derived per input view for captures without masks (issue 58).
 
 No learned weights: the object's bounding region (:mod:`pipeline.meshing.region`: the unit
 sphere, the support plane, the object's footprint; :func:`find_region` finds it from the
 init's depth maps with the lowest large plane as the table) is applied to the init's depth
 maps as a first object / background split, refined in image space by OpenCV's GrabCut
-seeded with that split, and made consistent across the views. Not wired into the pipeline
-yet: nothing imports this module but its test.
+seeded with that split, and made consistent across the views. ``gcgs masks``
+(:mod:`pipeline.runs.masks`) writes them into a copy of the prepared scene.
 
 Steps (:func:`derive_masks`):
 
@@ -20,7 +20,10 @@ Steps (:func:`derive_masks`):
      above it;
    * probable foreground: the rest of the depth inside the region; depth above the table
      beyond the footprint that runs on without a depth jump from it
-     (:func:`depth_components`); pixels without depth in the holes of that set;
+     (:func:`depth_components`); pixels without depth in the holes of that set after a
+     morphological closing over ``closing_px`` (a textureless part MVS matched at a few
+     pixels only: as probable background its pixels would teach GrabCut's background colour
+     model the object's colours, and GrabCut then cuts the part out);
    * probable background: every other pixel (no depth; depth above the table beyond the
      footprint and cut off from the object by a depth jump). Without a table, in-sphere
      depth not connected to the piece the cameras aim at (:func:`aim_point`) is probable
@@ -37,9 +40,9 @@ Steps (:func:`derive_masks`):
    (:func:`cross_view_check`): a foreground pixel of view ``i`` is dropped when its depth
    point (or, without depth, every point of its ray inside the region) projects outside the
    foreground (dilated by ``hull_tolerance_px``) of every other view whose image it lands
-   in. Enclosed holes without depth and without sure background are filled
-   (:func:`fill_depthless_holes`); components smaller than ``min_component_fraction`` of the
-   largest are dropped.
+   in. Enclosed holes without sure background and (nearly) without depth the seed calls
+   background are filled (:func:`fill_depthless_holes`); components smaller than
+   ``min_component_fraction`` of the largest are dropped.
 
 4. **Sanity**, per view: a mask covering less than ``min_coverage`` or more than
    ``max_coverage`` of its view is replaced by the silhouette of the region's sphere alone
@@ -100,6 +103,10 @@ FREE_SPACE_REL = 0.01
 # The cross-view test drops a pixel when at least half of the foreground in this window
 # (pixels, square) around it fails the test too.
 HULL_VOTE_WINDOW = 5
+# Overlays (:func:`overlay`): the outside of a mask at this share of its brightness, the
+# contour in a colour rare in photos of objects.
+OVERLAY_OUTSIDE_GAIN = 0.3
+OVERLAY_CONTOUR_RGB = (255, 0, 255)
 
 
 @dataclass
@@ -336,7 +343,8 @@ def aim_point(world_to_cam: np.ndarray) -> np.ndarray:
 
 
 def seed_labels(depth_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, region: Region,
-                band_px: int, continuity_px: float, aim_mm: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
+                band_px: int, continuity_px: float, aim_mm: np.ndarray | None = None,
+                closing_px: int = 0) -> tuple[np.ndarray, dict]:
     """GrabCut's ``(H, W)`` uint8 labels from the region applied to one depth map (module
     docstring, step 1), and pixel counts.
 
@@ -350,7 +358,9 @@ def seed_labels(depth_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, r
     the image, to where the aim point projects is foreground (among the pieces of at least
     :data:`AIM_PIECE_MIN_PX` pixels and :data:`AIM_PIECE_MIN_SHARE` of the view: a wrong
     match near the aim is a speck); the rest of the in-region depth (clutter in the sphere)
-    is probable background."""
+    is probable background. Pixels without depth (whose ray crosses the region) in the holes
+    of the foreground closed over ``closing_px`` pixels are probable foreground (0: in its
+    enclosed holes only)."""
     shape = depth_mm.shape
     origin, dirs = pixel_ray_dirs(K, world_to_cam, shape)
     t0, t1 = ray_intervals(region, origin, dirs, parts="no_footprint")
@@ -382,7 +392,9 @@ def seed_labels(depth_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, r
     sure_fg = scipy.ndimage.binary_erosion(inside, iterations=band_px, border_value=1) if band_px > 0 else inside.copy()
     if region.plane is not None:
         sure_fg &= pts @ region.plane[:3] + region.plane[3] > FG_HEIGHT_MARGINS * region.margin_mm
-    holes = scipy.ndimage.binary_fill_holes(fg) & ~has & crosses
+    # Pixels without depth among the foreground's are probable foreground (module docstring).
+    closed = scipy.ndimage.binary_closing(fg, iterations=closing_px) if closing_px > 0 else fg
+    holes = scipy.ndimage.binary_fill_holes(closed) & ~has & crosses
     labels = np.full(shape, GC_PR_BGD, np.uint8)
     labels[fg | holes] = GC_PR_FGD
     labels[sure_fg] = GC_FGD
@@ -516,9 +528,10 @@ def cross_view_check(masks: list[np.ndarray], labels: list[np.ndarray], depths_m
 def fill_depthless_holes(mask: np.ndarray, labels: np.ndarray, depth_mm: np.ndarray, max_depth_share: float) -> np.ndarray:
     """``mask`` with its enclosed holes (4-connected background not touching the image border)
     filled where the hole holds no sure-background seed label and at most
-    ``max_depth_share`` of its pixels have depth: a textureless part MVS left without depth
-    and GrabCut took for background by its colour. A hole showing the table or anything else
-    outside the region through the object has depth there (sure background) and stays open;
+    ``max_depth_share`` of its pixels have depth the seed calls background (probable or
+    sure): a textureless part MVS left without depth but for a few matches on the object,
+    which GrabCut took for background by its colour. A hole showing the table or anything
+    else outside the region through the object has background depth there and stays open;
     one showing a backdrop without any depth is filled (the cost of this step)."""
     lab, n = scipy.ndimage.label(~mask)
     if n == 0:
@@ -526,7 +539,8 @@ def fill_depthless_holes(mask: np.ndarray, labels: np.ndarray, depth_mm: np.ndar
     border = np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))
     size = np.bincount(lab.ravel(), minlength=n + 1)
     sure_bg = np.bincount(lab.ravel(), weights=(labels == GC_BGD).ravel(), minlength=n + 1)
-    with_depth = np.bincount(lab.ravel(), weights=(depth_mm > 0).ravel(), minlength=n + 1)
+    background_depth = (depth_mm > 0) & ((labels == GC_BGD) | (labels == GC_PR_BGD))
+    with_depth = np.bincount(lab.ravel(), weights=background_depth.ravel(), minlength=n + 1)
     fill = (sure_bg == 0) & (with_depth <= max_depth_share * size)
     fill[0] = False
     fill[border] = False
@@ -544,6 +558,20 @@ def drop_small_components(mask: np.ndarray, min_fraction: float) -> np.ndarray:
     return keep[lab]
 
 
+def overlay(image: np.ndarray, mask: np.ndarray, outside_gain: float = OVERLAY_OUTSIDE_GAIN) -> np.ndarray:
+    """``(H, W, 3)`` uint8 RGB picture of ``mask`` over ``image`` (float RGB in [0, 1]) for a
+    person to judge at a glance: the image's brightness stretched as GrabCut saw it
+    (:func:`to_uint8`), the outside of the mask darkened to ``outside_gain`` and the
+    mask's contour drawn in :data:`OVERLAY_CONTOUR_RGB`, 1 px wide per 400 px of the longer side."""
+    img = to_uint8(image)[..., ::-1].astype(np.float64)  # back to RGB
+    m = np.asarray(mask, bool)
+    img[~m] *= outside_gain
+    out = np.ascontiguousarray(np.clip(np.round(img), 0, 255).astype(np.uint8))
+    contours, _ = cv2.findContours(m.astype(np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    cv2.drawContours(out, contours, -1, OVERLAY_CONTOUR_RGB, max(1, round(max(m.shape) / 400)))
+    return out
+
+
 # ---------------------------------------------------------------------------------------
 
 
@@ -551,7 +579,7 @@ def derive_masks(images: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, de
                  region: Region, view_ids: list[int] | None = None, *, band_px: int = 2, continuity_px: float = 8.0,
                  grabcut_iterations: int = 4, grabcut_max_side: int = 400, hull_tolerance_px: int = 2,
                  min_component_fraction: float = 0.01, consistency: bool = True, hull_test: str = "free_space",
-                 hole_depth_share: float = 0.1,
+                 hole_depth_share: float = 0.1, hole_closing_share: float = 0.01,
                  min_coverage: float = 0.01,
                  max_coverage: float = 0.9, seed: int = 0) -> list[ViewMask]:
     """Object masks of the input views of a capture without masks (module docstring).
@@ -570,9 +598,11 @@ def derive_masks(images: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, de
     downscaled to this longer side); ``consistency`` (True): run the cross-view test of step
     3 (:func:`cross_view_check`), ``hull_test`` (``free_space``) the kind,
     ``hull_tolerance_px`` (2) its tolerance in pixels; ``min_component_fraction`` (0.01):
-    smaller components of a mask are dropped; ``hole_depth_share`` (0.1): enclosed holes of a mask with no sure
-    background seed and at most this share of pixels with depth are filled
-    (:func:`fill_depthless_holes`; 0: off);
+    smaller components of a mask are dropped; ``hole_depth_share`` (0.1): enclosed holes of a
+    mask with no sure background seed and at most this share of pixels with background depth
+    are filled (:func:`fill_depthless_holes`; 0: off); ``hole_closing_share`` (0.01): pixels
+    without depth in the holes of the foreground seed closed over this share of the image's
+    longer side are probable foreground (0: only its enclosed holes);
     ``min_coverage`` / ``max_coverage`` (0.01 / 0.9): outside these the view falls back to
     the sphere's silhouette with a warning (the other views' cross-view test has already
     run with its derived mask: harmless for ``free_space``, which reads the other views'
@@ -589,10 +619,12 @@ def derive_masks(images: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, de
         raise ValueError("derive_masks: depth must be finite and >= 0 (0 = no depth)")
     ids = list(range(n)) if view_ids is None else [int(v) for v in view_ids]
     aim = aim_point(world_to_cam) if n >= 2 else None
+    closing_px = round(hole_closing_share * max(H, W))
     results, seeds_fg, cut, all_labels = [], [], [], []
     for i in range(n):
         t = time.perf_counter()
-        labels, facts = seed_labels(depths_mm[i], K[i], world_to_cam[i], region, band_px, continuity_px, aim)
+        labels, facts = seed_labels(depths_mm[i], K[i], world_to_cam[i], region, band_px, continuity_px, aim,
+                                    closing_px)
         seed_fg = (labels == GC_FGD) | (labels == GC_PR_FGD)
         mask, method = grabcut(images[i], labels, grabcut_iterations, grabcut_max_side, seed), "grabcut"
         if mask is None:
