@@ -36,11 +36,12 @@ from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import load_params, section
 from pipeline.measure import provenance
 
-# category -> the rasterizer's numba kernels in it (cProfile's own time).
+# category -> the rasterizer's kernels in it (cProfile's own time): the numba kernels of the
+# cpu backend and the simd backend's C++ runners (``simd.NAME``, see bench-raster's KERNEL_PARTS).
 KERNELS = {
-    "raster forward kernel": ("forward",),
-    "raster backward kernels": ("backward", "reduce_and_chain"),
-    "raster set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles"),
+    "raster forward kernel": ("forward", "simd.pack_surfels", "simd.forward_all"),
+    "raster backward kernels": ("backward", "simd.backward_all", "reduce_and_chain"),
+    "raster set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles", "simd.depth_order"),
 }
 AUTOGRAD = "torch autograd (loss terms' backward)"
 LOSS_FORWARD = "loss terms' forward"
