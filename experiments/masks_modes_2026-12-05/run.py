@@ -5,8 +5,8 @@ same stages as a user would (``gcgs`` commands, ``conf/`` defaults, the ``fast``
 
 * ``given``: ``gcgs prepare`` with the scene's masks (what the DVC pipeline trains on);
 * ``none``: ``gcgs prepare --no-masks``, then every stage on it;
-* ``derived``: the ``none`` scene and its init, ``gcgs masks`` (overlays to
-  ``reports/renders/masks/SCENE/``), then ``init`` again and every stage on the new scene.
+* ``derived``: the ``none`` scene and its init, ``gcgs masks`` (its overlays side by side in
+  ``reports/renders/masks/SCENE.png``), then ``init`` again and every stage on the new scene.
 
 Per (scene, mode, seed) it records the Chamfer (overall, accuracy, completeness), the surfels,
 the training wall and CPU time, and the mesh's pixels outside the held-out masks as a share
@@ -63,12 +63,27 @@ def prepare_mode(scene: str, mode: str, work: Path) -> None:
         prepare_mode(scene, "none", work)
         none = work / scene / "none"
         gcgs("masks", "--scene", str(none / "scene"), "--init-dir", str(none / "init"), "--out-scene", str(d / "scene"),
-             "--overlays", str(REPO / "reports" / "renders" / "masks" / scene), log=log)
+             "--overlays", str(d / "overlays"), log=log)
+        overlay_strip(d / "overlays", REPO / "reports" / "renders" / "masks" / f"{scene}.png")
     else:
         gcgs("prepare", "--src", str(src), "--out", str(d / "scene"), "--name", scene,
              *(["--no-masks"] if mode == "none" else []), log=log)
     gcgs("init", "--scene", str(d / "scene"), "--out-dir", str(d / "init"), "--metrics", str(d / "init.json"), log=log)
     gcgs("priors", "--scene", str(d / "scene"), "--init-dir", str(d / "init"), "--out-dir", str(d / "priors"), log=log)
+
+
+def overlay_strip(overlays: Path, out: Path) -> None:
+    """The views' overlays side by side at half size, each labelled with its view id."""
+    import cv2
+
+    tiles = []
+    for png in sorted(overlays.glob("*.png")):
+        im = cv2.imread(str(png))
+        im = cv2.resize(im, (im.shape[1] // 2, im.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        cv2.putText(im, f"view {int(png.stem)}", (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (255, 255, 255), 1, cv2.LINE_AA)
+        tiles.append(im)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(out), np.concatenate(tiles, axis=1), [cv2.IMWRITE_PNG_COMPRESSION, 9])
 
 
 def run_cell(scene: str, mode: str, seed: int, work: Path) -> dict:
