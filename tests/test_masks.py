@@ -62,11 +62,11 @@ class Views:
     norm_to_world: np.ndarray
 
 
-def render(scene: SynthScene, cams, table_half_mm: float = 800.0) -> Views:
+def render(scene: SynthScene, cams, table_half_mm: float = 800.0, views: list[int] = VIEWS) -> Views:
     r = Renderer(scene, ground_half_size_mm=table_half_mm)
     imgs, deps, full, truth, parts, Ks = [], [], [], [], [], []
     S = cams.norm_to_world
-    for v in VIEWS:
+    for v in views:
         K = snap(geometry.scale_intrinsics(cams.K[v], W / 800, H / 600))
         hits = r.cast(K, cams.world_to_cam[v], W, H)
         depth = hits["depth"].copy()
@@ -78,7 +78,7 @@ def render(scene: SynthScene, cams, table_half_mm: float = 800.0) -> Views:
         truth.append(r.object_mask(hits))
         parts.append(hits["geometry"])
         Ks.append(K)
-    Ts = np.stack([cams.world_to_cam[v] for v in VIEWS])
+    Ts = np.stack([cams.world_to_cam[v] for v in views])
     return Views(scene, np.stack(imgs), np.stack(deps), np.stack(full), np.stack(truth), np.stack(parts), np.stack(Ks),
                  Ts, S)
 
@@ -155,6 +155,19 @@ def test_derived_masks_match_the_objects(scenes, mvs_depths, name, depth):
         assert r.mask.shape == (H, W) and r.mask.dtype == bool
         assert r.coverage == pytest.approx(r.mask.mean())
         assert set(r.stages) == {"seed", "grabcut", "consistent"}
+
+
+# Captures bring 3 to 10 views (issue 58): wider rings of DTU's cameras around the object.
+@pytest.mark.parametrize("views", [[22, 23, 24, 33, 34], [13, 14, 15, 22, 23, 24, 25, 32, 33, 34]])
+def test_derived_masks_match_with_more_views(cams, views):
+    rendered = render(build_scene("synth_relief", 0, cams), cams, views=views)
+    depths = mvs_like(rendered)
+    region, facts = region_of(rendered, depths)
+    out = M.derive_masks(rendered.images, rendered.K, rendered.world_to_cam, depths, region, views)
+    assert [r.view for r in out] == views
+    scores = [iou(r.mask, t) for r, t in zip(out, rendered.truth)]
+    assert min(scores) >= MIN_IOU, (scores, facts)
+    assert all(r.method == "grabcut" and not r.warnings for r in out)
 
 
 def test_a_textureless_part_without_depth_stays_in_the_mask(scenes, mvs_depths):
