@@ -17,7 +17,6 @@ from collections.abc import Callable
 from contextlib import ExitStack
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from pipeline import atomic
@@ -50,11 +49,6 @@ def check_scene_without_masks(scene_dir: Path) -> None:
                          "run the stages (init, priors, optimize, mesh) on it")
     raise SceneError(f"{scene_dir}: the scene has masks (mask/), and given masks always win: run the stages on it "
                      "as it is; gcgs masks is for a scene without masks")
-
-
-def _write_png(path: Path, image: np.ndarray) -> None:
-    if not cv2.imwrite(str(path), image):
-        raise OSError(f"{path}: could not write image")
 
 
 def derive_scene_masks(scene_dir: str | Path, init_dir: str | Path, out_scene: str | Path, cfg: MeshConfig,
@@ -106,7 +100,7 @@ def derive_scene_masks(scene_dir: str | Path, init_dir: str | Path, out_scene: s
                                                  and n in ("scene.json", atomic.MARKER, atomic.PARTIAL)])
         (tmp / "mask").mkdir()
         for r in results:
-            _write_png(mask_path(tmp, r.view), r.mask.astype(np.uint8) * 255)
+            dtu._write_png(mask_path(tmp, r.view), r.mask.astype(np.uint8) * 255)  # as prepare writes masks
         record = {"scene": str(scene_dir), "init_dir": str(init_dir), "region": region.facts(),
                   "table_found": region.plane is not None, "footprint_found": region.footprint is not None,
                   "region_search": region_facts,
@@ -116,5 +110,5 @@ def derive_scene_masks(scene_dir: str | Path, init_dir: str | Path, out_scene: s
         (tmp / "scene.json").write_text(json.dumps(meta, indent=2, sort_keys=True) + "\n")
         if overlays_tmp is not None:
             for r, image in zip(results, scene.images):
-                _write_png(overlay_path(overlays_tmp, r.view), derive.overlay(image, r.mask)[..., ::-1])
+                dtu._write_png(overlay_path(overlays_tmp, r.view), derive.overlay(image, r.mask))
     return record
