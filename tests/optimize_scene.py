@@ -49,12 +49,14 @@ def tiny_problem(tmp: Path, width: int = 64, height: int = 48, stride: int = 3):
 # The tiny run's settings over conf/'s defaults: its short schedule, and where conf/'s default
 # preset has others, the settings these tests were written with (the dataclass defaults before
 # conf/ became the one source of each, issue 60): full resolution, every init point, L_gcf and
-# L_nor on, L_mv, L_smooth and the photo reset off, the means' rate decayed 100x.
+# L_nor on, L_mv, L_smooth and the photo reset off, the means' rate decayed 100x, a fixed
+# surfel budget (a budget per object pixel would give the tiny views' few hundred).
 TINY_OPTIMIZE = {
     "preset": "custom", "iterations": 12, "sh_degree": 1, "sh_every": 5, "checkpoint_every": 0,
     "init_voxel_norm": 0.0, "downscale": [[0.0, 1]], "gcf_max_points": 16384, "mv_textured_points": False,
     "lr": {"means_final": 1.6e-6},
-    "densify": {"start_iter": 3, "stop_iter": 10, "every": 3, "reset_every": 8, "grad_threshold": 1e-6, "max_surfels": 5000},
+    "densify": {"start_iter": 3, "stop_iter": 10, "every": 3, "reset_every": 8, "grad_threshold": 1e-6, "max_surfels": 5000,
+                "surfels_per_object_px": 0.0},
     "start": {"gcf": 0, "nor": 0, "d": 2, "dn": 2, "mv": 7000},
     "photo_reset": {"enabled": False},
 }

@@ -145,10 +145,10 @@ def test_strategy_clones_small_splits_large_and_respects_budget():
     assert torch.allclose(s[-2:], torch.full((2, 2), 0.05 / 1.6, dtype=s.dtype))
     assert len(st.state.grad2d) == params.num and float(st.state.grad2d.sum()) == 0.0
     # Budget: no room -> nothing added.
-    st.cfg = dataclasses.replace(st.cfg, max_surfels=params.num)
+    st.max_surfels = params.num  # the scene's budget (optimize.region), at most cfg.max_surfels
     st.step_post_backward(params, torch.full((params.num, 2), 1.0), torch.ones(params.num, dtype=torch.int32), 400, 300)
     done = st.step_post_update(params, opt, 20, torch.Generator().manual_seed(0))
-    assert done["cloned"] + done["split"] == 0 and params.num <= st.cfg.max_surfels
+    assert done["cloned"] + done["split"] == 0 and params.num <= st.max_surfels
 
 
 def test_strategy_prunes_transparent_but_never_everything():

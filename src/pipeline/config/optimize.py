@@ -49,7 +49,11 @@ class DensifyConfig(FromConf):
     reset_value: float  # opacity reset to min(opacity, this)
     max_world_scale: float  # x extent, pruned after the first reset
     max_screen_fraction: float  # x max(W, H), pruned after the first reset (0: off)
-    max_surfels: int  # budget
+    max_surfels: int  # the ceiling of every scene's budget (memory)
+    # A scene's budget: this many surfels per object pixel (mean over the input views at the
+    # data resolution: mask pixels, or without masks the pixels whose ray crosses the region's
+    # sphere), at most max_surfels; 0: max_surfels for every scene (optimize.region).
+    surfels_per_object_px: float
 
     def __post_init__(self) -> None:
         where = "optimize.densify"
@@ -68,9 +72,31 @@ class DensifyConfig(FromConf):
             raise ConfigError(f"{where}.reset_value must be in (0, 1), got {self.reset_value}")
         if not 0 <= self.prune_opacity < 1:
             raise ConfigError(f"{where}.prune_opacity must be in [0, 1) (0: no pruning), got {self.prune_opacity}")
-        for key in ("grad_threshold", "percent_dense", "max_world_scale", "max_screen_fraction"):
+        for key in ("grad_threshold", "percent_dense", "max_world_scale", "max_screen_fraction", "surfels_per_object_px"):
             if getattr(self, key) < 0:
                 raise ConfigError(f"{where}.{key} must be >= 0, got {getattr(self, key)}")
+
+
+@dataclass
+class RegionConfig(FromConf):
+    """Where surfels may be (docs/optimize.md "Surfels only where the object is";
+    :mod:`pipeline.optimize.region`): inside the sphere of ``sphere_radius`` (normalised
+    frame: 1 is the unit sphere of scale_mat, the one the mesh is cut to) and, where masks
+    are used, inside every input view's mask grown by ``hull_tolerance_px`` (pixels of the
+    data resolution) wherever the centre is in that view's image: the masks' visual hull.
+    Init points outside are dropped, densification does not grow there, each refinement and
+    the end of training prune what lies outside. ``enabled`` False: no region (values: the
+    preset's ``region``, conf/optimize/*.yaml)."""
+
+    SECTION = "optimize.region"
+
+    enabled: bool
+    sphere_radius: float
+    hull_tolerance_px: float
+
+    def __post_init__(self) -> None:
+        require_min("optimize.region", self, "sphere_radius", strict=True)
+        require_min("optimize.region", self, "hull_tolerance_px")
 
 
 @dataclass
@@ -181,12 +207,13 @@ class OptimizeConfig(FromConf):
     start: TermStarts
     photo_reset: PhotoResetConfig
     crop: CropConfig
+    region: RegionConfig
 
     BACKENDS = ("auto", "cpu", "simd", "cuda", "reference")
 
     def __post_init__(self) -> None:
         nested_sections(self, "optimize", lr=LearningRates, densify=DensifyConfig, start=TermStarts,
-                        photo_reset=PhotoResetConfig, crop=CropConfig)
+                        photo_reset=PhotoResetConfig, crop=CropConfig, region=RegionConfig)
         if self.backend not in self.BACKENDS:
             raise ConfigError(f"optimize.backend must be one of {', '.join(self.BACKENDS)}, got {self.backend!r}")
         if self.masks not in ("auto", "on", "off"):

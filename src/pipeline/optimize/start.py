@@ -14,6 +14,7 @@ from pipeline.data.scene import Scene
 from pipeline.errors import ConfigError, DegenerateResultError
 from pipeline.geometry import voxel_downsample
 from pipeline.init.io import PointCloud
+from pipeline.optimize.region import SurfelRegion
 from pipeline.optimize.seed import init_params
 from pipeline.optimize.views import TrainViews
 from pipeline.surfels import SurfelParams
@@ -32,18 +33,29 @@ def uses_masks(scene: Scene, cfg: OptimizeConfig) -> bool:
     return cfg.masks == "on" or (cfg.masks == "auto" and scene.masks is not None)
 
 
-def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where: str = "init cloud") -> SurfelParams:
+def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where: str = "init cloud",
+                    region: SurfelRegion | None = None, max_surfels: int | None = None) -> SurfelParams:
     """Surfels from an init cloud (world mm -> the normalised frame of ``scene``).
 
-    The cloud is averaged in voxels of ``cfg.init_voxel_norm``, coarser ones while it holds
-    more points than the surfel budget ``cfg.densify.max_surfels``, so a budget caps the
-    whole run and not only densification, and the kept points still cover the object."""
+    Points outside ``region`` (None: anywhere) are dropped. The rest is averaged in voxels
+    of ``cfg.init_voxel_norm``, coarser ones while it holds more points than the surfel
+    budget ``max_surfels`` (None: ``cfg.densify.max_surfels``), so a budget caps the whole
+    run and not only densification, and the kept points still cover the object."""
     S = scene.norm_to_world
     pts = (np.asarray(cloud.points_mm, np.float64) - S[:3, 3]) @ np.linalg.inv(S[:3, :3]).T
     normals, colors = cloud.normals.astype(np.float64), cloud.colors.astype(np.float64)
-    pts, normals, colors = budget_downsample(pts, normals, colors, cfg.init_voxel_norm, cfg.densify.max_surfels)
+    n_cloud = len(pts)
+    if region is not None and n_cloud:
+        keep = region.contains(pts).numpy()
+        pts, normals, colors = pts[keep], normals[keep], colors[keep]
+        if n_cloud and not len(pts):
+            raise DegenerateResultError(f"{where}: none of its {n_cloud} init points lies inside the region "
+                                        f"(optimize.region: the sphere of radius {region.sphere_radius} and the masks' "
+                                        f"visual hull); is the cloud in this scene's frame?")
+    budget = cfg.densify.max_surfels if max_surfels is None else max_surfels
+    pts, normals, colors = budget_downsample(pts, normals, colors, cfg.init_voxel_norm, budget)
     if 0 < len(pts) < MIN_INIT_POINTS:
-        raise DegenerateResultError(f"{where}: {len(cloud.points_mm)} init point(s) give {len(pts)} surfels, fewer than "
+        raise DegenerateResultError(f"{where}: {n_cloud} init point(s) give {len(pts)} surfels, fewer than "
                                     f"{MIN_INIT_POINTS}: too few to seed a surface (did the init stage match anything?)")
     rng = np.random.default_rng(cfg.seed)
     return init_params(pts, normals if cfg.init_normals else None, colors, cfg.sh_degree, cfg.init_opacity, rng,

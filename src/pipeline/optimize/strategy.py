@@ -17,6 +17,7 @@ import torch
 
 from pipeline.config.optimize import DensifyConfig
 from pipeline.optimize import ops
+from pipeline.optimize.region import SurfelRegion
 from pipeline.surfels import SurfelParams
 
 
@@ -55,12 +56,21 @@ class DensifyState:
 class DensifyStrategy:
     """Clone small / split large surfels with a high mean screen-space gradient, prune
     transparent and oversized ones, reset opacities periodically; all under a surfel
-    budget. ``cfg`` is its whole configuration (params ``optimize.densify``), ``state``
-    its accumulators. Iteration numbers are 0-based steps of the training loop."""
+    budget (``max_surfels``, the scene's: :func:`pipeline.optimize.region.surfel_budget`;
+    None: ``cfg.max_surfels``) and inside ``region`` (None: anywhere): surfels outside it
+    are neither cloned nor split, and each refinement prunes those outside, split children
+    included. ``cfg`` is the rest of its configuration (params ``optimize.densify``),
+    ``state`` its accumulators. Iteration numbers are 0-based steps of the training loop."""
 
     cfg: DensifyConfig
     scene_extent: float = 1.0
+    max_surfels: int | None = None
+    region: SurfelRegion | None = None
     state: DensifyState | None = field(default=None, repr=False)
+
+    def __post_init__(self) -> None:
+        if self.max_surfels is None:
+            self.max_surfels = self.cfg.max_surfels
 
     def initialize(self, num: int) -> None:
         self.state = DensifyState.zeros(num)
@@ -103,11 +113,13 @@ class DensifyStrategy:
     def _densify(self, params: SurfelParams, optimizer, generator) -> dict:
         grads = self.state.grad2d / self.state.count.clamp_min(1)
         high = grads >= self.cfg.grad_threshold
+        if self.region is not None:
+            high &= self.region.contains(params.means)
         with torch.no_grad():
             max_scale = torch.exp(params.log_scales.max(dim=1).values).to(torch.float64)
         small = max_scale <= self.cfg.percent_dense * self.scene_extent
         clone, split = high & small, high & ~small
-        room = self.cfg.max_surfels - params.num
+        room = self.max_surfels - params.num
         # Under the budget: the surfels with the largest gradients go first.
         n_clone, n_split = int(clone.sum()), int(split.sum())
         if n_clone + n_split > room:
@@ -131,10 +143,12 @@ class DensifyStrategy:
                     self.cfg.max_world_scale * self.scene_extent)
                 if self.cfg.max_screen_fraction > 0:
                     prune |= self.state.max_radii > self.cfg.max_screen_fraction
+        outside = ~self.region.contains(params.means) if self.region is not None else torch.zeros_like(prune)
+        prune |= outside
         if prune.all():  # never prune to nothing: a scene of zero surfels cannot recover
             prune[torch.argmax(params.opacity_logits.detach())] = False
         n = int(prune.sum())
         if n:
             ops.select(params, optimizer, ~prune)
             self.state.select(~prune)
-        return {"pruned": n}
+        return {"pruned": n, "outside": int(outside.sum())}

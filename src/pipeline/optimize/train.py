@@ -51,6 +51,7 @@ from pipeline.losses import (
 )
 from pipeline.optimize import ops
 from pipeline.optimize.photoreset import visible_surfels_at
+from pipeline.optimize.region import region_from_views, surfel_budget
 from pipeline.optimize.strategy import DensifyState, DensifyStrategy
 from pipeline.optimize.views import TrainViews, ViewData, crop_view, crop_window
 from pipeline.rasterizer import rasterize, resolve_backend
@@ -77,6 +78,8 @@ class TrainResult:
     history: list[dict] = field(default_factory=list)  # one row per logged iteration
     seconds: dict = field(default_factory=dict)  # summed time per part of an iteration
     removed_degenerate: int = 0
+    removed_outside: int = 0  # surfels pruned outside the region (optimize.region), the final prune included
+    surfel_budget: dict = field(default_factory=dict)  # the scene's budget and the rule that set it
     resumed_from: int | None = None
     final_terms: dict = field(default_factory=dict)
     # Wall and CPU seconds of the training loop in earlier runs of this training (those up
@@ -119,7 +122,11 @@ class Trainer:
         self.num_init = params.num
         self.fingerprint = _fingerprint(cfg, loss, params, views)
         self.optimizer = ops.make_optimizer(params, _lrs(cfg))
-        self.strategy = DensifyStrategy(cfg.densify, scene_extent=cfg.scene_extent)
+        masks = views.training_masks()
+        self.region = region_from_views(views.scene, masks, cfg)
+        self.budget = surfel_budget(views.scene, masks, cfg)
+        self.strategy = DensifyStrategy(cfg.densify, scene_extent=cfg.scene_extent, max_surfels=self.budget.surfels,
+                                        region=self.region)
         self.strategy.initialize(params.num)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.rng = np.random.default_rng(cfg.seed)
@@ -133,6 +140,7 @@ class Trainer:
         self.textured_cache: dict[tuple[int, tuple[int, int]], torch.Tensor] = {}
         self.it = 0
         self.removed_degenerate = 0
+        self.removed_outside = 0
         self.seconds: dict[str, float] = defaultdict(float)
         self.spent = {"wall_s": 0.0, "cpu_s": 0.0}  # the training loop's time, over every run
 
@@ -144,6 +152,7 @@ class Trainer:
             "optimizer": self.optimizer.state_dict(), "strategy": self.strategy.state.state_dict(),
             "generator": self.generator.get_state(), "rng": self.rng.bit_generator.state,
             "queue": list(self.queue), "removed_degenerate": self.removed_degenerate,
+            "removed_outside": self.removed_outside,
             "seconds": dict(self.seconds), "spent": dict(self.spent),
             "last_depth": {k: (d.clone(), K.clone()) for k, (d, K) in self.last_depth.items()},
         }
@@ -161,6 +170,7 @@ class Trainer:
         self.it = int(state["it"])
         self.num_init = int(state["num_init"])
         self.removed_degenerate = int(state["removed_degenerate"])
+        self.removed_outside = int(state["removed_outside"])
         self.seconds = defaultdict(float, state["seconds"])
         self.spent = dict(state["spent"])
         self.last_depth = dict(state.get("last_depth", {}))
@@ -249,6 +259,7 @@ class Trainer:
         self.seconds["step"] += t - t2
         refine = self.strategy.refines_at(it)
         changes = self.strategy.step_post_update(self.params, self.optimizer, it, self.generator)
+        self.removed_outside += changes.get("outside", 0)
         t2 = clock()
         self.seconds["densify"] += t2 - t
         # After the step's pruning, so a reset surfel has until the next one to earn its
@@ -450,6 +461,21 @@ class Trainer:
         bad |= (ls.min(dim=1).values < math.log(MIN_SCALE)) | (ls.max(dim=1).values > math.log(MAX_SCALE * self.cfg.scene_extent))
         return bad
 
+    def prune_outside(self) -> int:
+        """Remove the surfels outside the region (after the last refinement they can still
+        drift out); returns how many. A region that holds none of them keeps them all: a
+        scene of zero surfels cannot be written."""
+        if self.region is None:
+            return 0
+        outside = ~self.region.contains(self.params.means)
+        n = int(outside.sum())
+        if n == 0 or n == self.params.num:
+            return 0
+        ops.select(self.params, self.optimizer, ~outside)
+        self.strategy.state.select(~outside)
+        self.removed_outside += n
+        return n
+
     def _remove(self, bad: torch.Tensor) -> None:
         keep = ~bad
         if not keep.any():
@@ -504,6 +530,8 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
     last: dict = {}
     try:
         _loop(trainer, cfg, ckpt, history, last, on_log, log_every, stop_after, bar)
+        if trainer.it >= cfg.iterations:
+            trainer.prune_outside()
     except KeyboardInterrupt:
         saved = (trainer.it // cfg.checkpoint_every) * cfg.checkpoint_every if cfg.checkpoint_every else 0
         if ckpt is not None and saved > 0 and ckpt.is_file():
@@ -516,7 +544,8 @@ def train(params: SurfelParams, views: TrainViews, cfg: OptimizeConfig, loss: Lo
             bar.close()
     return TrainResult(params=trainer.params, iterations=trainer.it, backend=backend, num_init=trainer.num_init,
                        history=history, seconds={k: trainer.seconds.get(k, 0.0) for k in TIMED},
-                       removed_degenerate=trainer.removed_degenerate, resumed_from=resumed, spent_before=spent_before,
+                       removed_degenerate=trainer.removed_degenerate, removed_outside=trainer.removed_outside,
+                       surfel_budget=trainer.budget.facts(), resumed_from=resumed, spent_before=spent_before,
                        final_terms={k: v for k, v in last.items() if k not in ("iteration", "view", "seconds")})
 
 

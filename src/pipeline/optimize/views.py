@@ -151,6 +151,13 @@ class TrainViews:
     def num_views(self) -> int:
         return self.scene.num_views
 
+    def training_masks(self) -> list[np.ndarray] | None:
+        """The masks the training uses, full resolution ``(H, W)`` bool per view; None
+        when it uses none."""
+        if not self.use_masks or self.scene.masks is None:
+            return None
+        return [np.asarray(m, bool) for m in self.scene.masks]
+
     def at(self, index: int, factor: int) -> ViewData:
         key = (index, factor)
         if key not in self._cache:

@@ -33,16 +33,14 @@ def resolve_backend(name: str) -> str:
     also where a GPU is: ``cuda`` (gsplat) composites surfel-centre depth, a different method
     that measured worse (docs/rasterizer.md, "The cuda backend, run"), so it runs only when
     named. Naming ``simd`` where its kernels do not build is an error that says why."""
-    if name in ("auto", "simd"):
+    if name == "auto":
+        return _cpu_kernels()
+    if name == "simd":
         from pipeline.rasterizer import simd
 
         ok, why = simd.available()
-        if ok:
-            return "simd"
-        if name == "simd":
+        if not ok:
             raise ConfigError(f"optimize.backend is simd but its kernels do not build here: {why.splitlines()[0]} (use auto or cpu)")
-        _say_fallback_once(why)
-        return "cpu"
     if name == "cuda" and not torch.cuda.is_available():
         raise ConfigError("optimize.backend is cuda but no CUDA device is available (use auto or cpu)")
     return name
@@ -51,11 +49,18 @@ def resolve_backend(name: str) -> str:
 _fallback_said: list[str] = []
 
 
-def _say_fallback_once(why: str) -> None:
+def _cpu_kernels() -> str:
+    """``simd`` where its kernels build, else ``cpu``, saying why once per process."""
+    from pipeline.rasterizer import simd
+
+    ok, why = simd.available()
+    if ok:
+        return "simd"
     if not _fallback_said:
         _fallback_said.append(why)
         print(f"gcgs: warning: the simd rasterizer kernels do not build here ({why.splitlines()[0]}); "
               "using the numba cpu kernels (slower, same results to float32 rounding)", file=sys.stderr)
+    return "cpu"
 
 
 def rasterize(
@@ -124,12 +129,10 @@ def _auto_for(surfels: Surfels) -> str:
     """``rasterize``'s ``auto``: per call, since the simd kernels take float32 only."""
     if surfels.means.device.type == "cuda":
         return "cuda"
+    if _cpu_kernels() == "cpu":
+        return "cpu"
     from pipeline.rasterizer import simd
 
-    ok, why = simd.available()
-    if not ok:
-        _say_fallback_once(why)
-        return "cpu"
     # colors_of keeps the features' dtype and last dimension (SH evaluates to the same channels)
     channels = surfels.features.new_empty((0, surfels.features.shape[-1]))
     return "cpu" if simd.unsuited(surfels.means, channels) else "simd"

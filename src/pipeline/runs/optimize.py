@@ -15,6 +15,7 @@ from pipeline.data.scene import Scene, check_made_from
 from pipeline.errors import DegenerateResultError, OutputError
 from pipeline.init.io import read_ply
 from pipeline.optimize import MIN_SURFELS, init_from_cloud, make_views, uses_masks
+from pipeline.optimize.region import region_from_views, surfel_budget
 from pipeline.optimize.train import CHECKPOINT_KIND, TrainResult, train
 from pipeline.optimize.views import TrainViews
 from pipeline.surfels import SurfelParams, write_splats_3dgs_ply, write_surfel_ply
@@ -37,9 +38,12 @@ def load_training_inputs(scene_dir: str | Path, init_dir: str | Path, priors_dir
     if priors_dir is not None and (loss.lambda_nor > 0 or loss.lambda_gcf > 0):
         check_made_from(scene, priors_dir, "priors.json", "priors")
     cloud_path = init_cloud_path(init_dir)
-    surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path))
     depth_dir = Path(init_dir) / "depth"
     views = make_views(scene, priors_dir, cfg, loss, depth_dir if depth_dir.is_dir() else None)
+    masks = views.training_masks()
+    surfels = init_from_cloud(read_ply(cloud_path), scene, cfg, where=str(cloud_path),
+                              region=region_from_views(scene, masks, cfg),
+                              max_surfels=surfel_budget(scene, masks, cfg).surfels)
     return scene, surfels, views
 
 
@@ -73,7 +77,8 @@ def run_optimize(scene_dir: str | Path, init_dir: str | Path, priors_dir: str | 
         facts = {
             "scene": str(scene_dir), "scene_fingerprint": scene.fingerprint(), "preset": cfg.preset, "backend": result.backend, "iterations": result.iterations,
             "surfels_init": result.num_init, "surfels_final": result.params.num,
-            "removed_degenerate": result.removed_degenerate, "masks": uses_masks(scene, cfg),
+            "removed_degenerate": result.removed_degenerate, "removed_outside_region": result.removed_outside,
+            "surfel_budget": result.surfel_budget, "masks": uses_masks(scene, cfg),
             "final_terms": {k: round(v, 6) for k, v in result.final_terms.items() if isinstance(v, float)},
             "frame": "surfels.ply: world frame, mm (training ran in the normalised frame)",
             "config": asdict(cfg), "loss": asdict(loss),
@@ -129,5 +134,6 @@ def timing_report(result: TrainResult, usage: dict, preset: str) -> dict:
         # the split is restored from the checkpoint, so it covers every iteration
         "s_per_iteration": round(sum(result.seconds.values()) / max(result.iterations, 1), 4),
         "split_s": {k: round(v, 3) for k, v in result.seconds.items()},
-        "surfels_final": result.params.num, "backend": result.backend, "preset": preset,
+        "surfels_final": result.params.num, "surfel_budget": result.surfel_budget.get("surfels"),
+        "backend": result.backend, "preset": preset,
     }
