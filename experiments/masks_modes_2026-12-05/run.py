@@ -16,7 +16,9 @@ two at a time, one thread each.
 
     python experiments/masks_modes_2026-12-05/run.py --seeds 0 [--scenes synth_thin ...] [--work data/masks_modes]
 
-Writes ``reports/experiments/masks_modes_2026-12-05/results.csv`` and ``results.md``.
+Writes ``reports/experiments/masks_modes_2026-12-05/results.csv`` and ``results.md``, and per
+scene and mode the held-out overlay of the first seed's mesh (``gcgs render-scene``'s:
+its silhouette against held-out masks) as ``reports/renders/masks/SCENE_heldout_MODE.png``.
 """
 from __future__ import annotations
 
@@ -139,6 +141,19 @@ def heldout_silhouette(scene: str, scene_dir: Path, mesh_ply: Path) -> tuple[flo
     return extra / area, missing / area, float(np.mean(ious))
 
 
+def heldout_pictures(scenes: list[str], modes: list[str], seed: int, work: Path) -> None:
+    """The held-out overlay (mesh silhouette vs held-out masks) of each (scene, mode)'s
+    ``seed`` run, to ``reports/renders/masks/SCENE_heldout_MODE.png``."""
+    sys.path.insert(0, str(REPO / "src"))
+    from pipeline.reports.renders import heldout_overlay, write_png
+
+    for scene in scenes:
+        for mode in modes:
+            d = work / scene / mode
+            shot = heldout_overlay(d / "scene", REPO / scene_src(scene), d / f"seed{seed}" / "mesh" / "mesh.ply")
+            write_png(REPO / "reports" / "renders" / "masks" / f"{scene}_heldout_{mode}.png", shot.rgb)
+
+
 def markdown(rows: list[dict], commit: str) -> str:
     lines = ["# Masks given / derived / none (synthetic scenes, `fast`)", "",
              f"Commit {commit}; `experiments/masks_modes_2026-12-05/run.py`; cells two at a time, one thread each. "
@@ -190,6 +205,7 @@ def main() -> int:
         w.writeheader()
         w.writerows({**r, "commit": commit} for r in rows)
     out.with_suffix(".md").write_text(markdown(rows, commit))
+    heldout_pictures(args.scenes, args.modes, min(args.seeds), work)
     print(out.with_suffix(".md").read_text(), f"\n{time.time() - t0:.0f} s")
     return 0
 
