@@ -111,7 +111,7 @@ def run_cell(scene: str, mode: str, seed: int, work: Path) -> dict:
     return {"scene": scene, "masks": mode, "seed": seed, "overall_mm": chamfer.get("overall_mm", np.nan),
             "accuracy_mm": chamfer.get("accuracy_mm", np.nan), "completeness_mm": chamfer.get("completeness_mm", np.nan),
             "heldout_mesh_iou": mesh_iou,
-            "surfels": t["surfels_final"], "train_wall_s": t["wall_s"], "train_cpu_s": t["cpu_s"],
+            "surfels": t["surfels_final"], "surfel_budget": t.get("surfel_budget"), "train_wall_s": t["wall_s"], "train_cpu_s": t["cpu_s"],
             "peak_rss_mb": t["peak_rss_mb"], "extra_share": extra, "missing_share": missing}
 
 
@@ -160,8 +160,8 @@ def markdown(rows: list[dict], commit: str) -> str:
              "Chamfer in mm (mean ± half-range over seeds); surfels and training CPU as the mean; "
              "extra / missing: the mesh's pixels outside / the mask pixels it misses, over every held-out "
              "view, as a share of the masks' area.", "",
-             "| scene | masks | seeds | overall | accuracy | completeness | held-out mesh IoU | surfels | train CPU s | extra | missing |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| scene | masks | seeds | overall | accuracy | completeness | held-out mesh IoU | surfels | budget | train CPU s | extra | missing |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for scene in dict.fromkeys(r["scene"] for r in rows):
         for mode in MODES:
             rs = [r for r in rows if r["scene"] == scene and r["masks"] == mode]
@@ -176,7 +176,7 @@ def markdown(rows: list[dict], commit: str) -> str:
 
             mean = lambda k, rs=rs: float(np.mean([r[k] for r in rs]))  # noqa: E731
             lines.append(f"| {scene} | {mode} | {len(rs)} | {pm('overall_mm')} | {pm('accuracy_mm')} | "
-                         f"{pm('completeness_mm')} | {pm('heldout_mesh_iou')} | {mean('surfels'):.0f} | {mean('train_cpu_s'):.0f} | "
+                         f"{pm('completeness_mm')} | {pm('heldout_mesh_iou')} | {mean('surfels'):.0f} | {mean('surfel_budget'):.0f} | {mean('train_cpu_s'):.0f} | "
                          f"{100 * mean('extra_share'):.1f}% | {100 * mean('missing_share'):.1f}% |")
     return "\n".join(lines) + "\n"
 
