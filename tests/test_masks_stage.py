@@ -173,3 +173,42 @@ def test_refusals_are_one_line_and_leave_nothing_behind(capture, derived, capsys
     assert rc != 0 and len(lines) == 1 and lines[0].startswith("gcgs masks: error: ") and expected in lines[0], err
     assert not out.exists() and sorted(p.name for p in tmp_path.iterdir()) == before
     assert {p: tree_digest(p) for p in inputs} == inputs
+
+
+@pytest.mark.parametrize("layout", ["colmap_text", "colmap_binary", "nerfstudio"])
+def test_captures_of_every_layout_get_derived_masks_and_surfels_only_inside(capture, tmp_path, layout):
+    """The same capture without masks as a COLMAP (text, binary) or nerfstudio folder, as a
+    user brings it: prepare (every image an input view), init, ``gcgs masks``, a short
+    training on the derived scene. The masks match the object (IoU >= 0.9) and no surfel
+    ends outside the region (the sphere and the derived masks' visual hull)."""
+    from pipeline.config.optimize import OptimizeConfig
+    from pipeline.data import export
+    from pipeline.optimize.region import region_from_views
+    from pipeline.surfels import read_surfel_ply
+
+    views = capture["views"]
+    ids = range(len(VIEWS))  # COLMAP and nerfstudio number views by image name, from 0
+    parts = (dict(zip(ids, views.K)), dict(zip(ids, views.world_to_cam)), (W, H), dict(zip(ids, views.images)))
+    src = tmp_path / "capture"
+    if layout == "nerfstudio":
+        export.write_nerfstudio(src, *parts)
+    else:
+        export.write_colmap(src, *parts, binary=layout == "colmap_binary")
+    scene, init, priors, out, surfels = (tmp_path / d for d in ("scene", "init", "priors", "derived", "surfels"))
+    for argv in (["prepare", "--src", src, "--out", scene, "--width", W],  # no --views: every image
+                 ["init", "--scene", scene, "--out-dir", init],
+                 ["masks", "--scene", scene, "--init-dir", init, "--out-scene", out],
+                 ["priors", "--scene", out, "--init-dir", init, "--out-dir", priors],
+                 ["optimize", "--scene", out, "--init-dir", init, "--priors-dir", priors, "--out-dir", surfels,
+                  "--iterations", 120, "--no-progress"]):
+        assert cli.main([str(a) for a in argv] + ["--params", PARAMS]) == 0, argv[0]
+    derived = dtu.load_scene(out, view_ids=None)
+    assert derived.view_ids == [0, 1, 2]
+    ious = [iou for iou in (float((m & t).sum() / (m | t).sum()) for m, t in zip(derived.masks, views.truth))]
+    assert min(ious) >= MIN_IOU, (layout, ious)
+    trained = json.loads((surfels / "train.json").read_text())
+    assert trained["masks"] and trained["surfel_budget"]["object_area_from"] == "masks"
+    cfg = OptimizeConfig.default()  # conf/'s region: what params.yaml composes
+    region = region_from_views(derived, [np.asarray(m, bool) for m in derived.masks], cfg)
+    params = read_surfel_ply(surfels / "surfels.ply", derived.norm_to_world)
+    assert params.num >= 32 and bool(region.contains(params.means).all())

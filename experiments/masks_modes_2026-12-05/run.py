@@ -16,7 +16,9 @@ two at a time, one thread each.
 
     python experiments/masks_modes_2026-12-05/run.py --seeds 0 [--scenes synth_thin ...] [--work data/masks_modes]
 
-Writes ``reports/experiments/masks_modes_2026-12-05/results.csv`` and ``results.md``.
+Writes ``reports/experiments/masks_modes_2026-12-05/results.csv`` and ``results.md``, and per
+scene and mode the held-out overlay of the first seed's mesh (``gcgs render-scene``'s:
+its silhouette against held-out masks) as ``reports/renders/masks/SCENE_heldout_MODE.png``.
 """
 from __future__ import annotations
 
@@ -109,7 +111,7 @@ def run_cell(scene: str, mode: str, seed: int, work: Path) -> dict:
     return {"scene": scene, "masks": mode, "seed": seed, "overall_mm": chamfer.get("overall_mm", np.nan),
             "accuracy_mm": chamfer.get("accuracy_mm", np.nan), "completeness_mm": chamfer.get("completeness_mm", np.nan),
             "heldout_mesh_iou": mesh_iou,
-            "surfels": t["surfels_final"], "train_wall_s": t["wall_s"], "train_cpu_s": t["cpu_s"],
+            "surfels": t["surfels_final"], "surfel_budget": t.get("surfel_budget"), "train_wall_s": t["wall_s"], "train_cpu_s": t["cpu_s"],
             "peak_rss_mb": t["peak_rss_mb"], "extra_share": extra, "missing_share": missing}
 
 
@@ -139,14 +141,27 @@ def heldout_silhouette(scene: str, scene_dir: Path, mesh_ply: Path) -> tuple[flo
     return extra / area, missing / area, float(np.mean(ious))
 
 
+def heldout_pictures(scenes: list[str], modes: list[str], seed: int, work: Path) -> None:
+    """The held-out overlay (mesh silhouette vs held-out masks) of each (scene, mode)'s
+    ``seed`` run, to ``reports/renders/masks/SCENE_heldout_MODE.png``."""
+    sys.path.insert(0, str(REPO / "src"))
+    from pipeline.reports.renders import heldout_overlay, write_png
+
+    for scene in scenes:
+        for mode in modes:
+            d = work / scene / mode
+            shot = heldout_overlay(d / "scene", REPO / scene_src(scene), d / f"seed{seed}" / "mesh" / "mesh.ply")
+            write_png(REPO / "reports" / "renders" / "masks" / f"{scene}_heldout_{mode}.png", shot.rgb)
+
+
 def markdown(rows: list[dict], commit: str) -> str:
     lines = ["# Masks given / derived / none (synthetic scenes, `fast`)", "",
              f"Commit {commit}; `experiments/masks_modes_2026-12-05/run.py`; cells two at a time, one thread each. "
              "Chamfer in mm (mean ± half-range over seeds); surfels and training CPU as the mean; "
              "extra / missing: the mesh's pixels outside / the mask pixels it misses, over every held-out "
              "view, as a share of the masks' area.", "",
-             "| scene | masks | seeds | overall | accuracy | completeness | held-out mesh IoU | surfels | train CPU s | extra | missing |",
-             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+             "| scene | masks | seeds | overall | accuracy | completeness | held-out mesh IoU | surfels | budget | train CPU s | extra | missing |",
+             "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
     for scene in dict.fromkeys(r["scene"] for r in rows):
         for mode in MODES:
             rs = [r for r in rows if r["scene"] == scene and r["masks"] == mode]
@@ -161,7 +176,7 @@ def markdown(rows: list[dict], commit: str) -> str:
 
             mean = lambda k, rs=rs: float(np.mean([r[k] for r in rs]))  # noqa: E731
             lines.append(f"| {scene} | {mode} | {len(rs)} | {pm('overall_mm')} | {pm('accuracy_mm')} | "
-                         f"{pm('completeness_mm')} | {pm('heldout_mesh_iou')} | {mean('surfels'):.0f} | {mean('train_cpu_s'):.0f} | "
+                         f"{pm('completeness_mm')} | {pm('heldout_mesh_iou')} | {mean('surfels'):.0f} | {mean('surfel_budget'):.0f} | {mean('train_cpu_s'):.0f} | "
                          f"{100 * mean('extra_share'):.1f}% | {100 * mean('missing_share'):.1f}% |")
     return "\n".join(lines) + "\n"
 
@@ -190,6 +205,7 @@ def main() -> int:
         w.writeheader()
         w.writerows({**r, "commit": commit} for r in rows)
     out.with_suffix(".md").write_text(markdown(rows, commit))
+    heldout_pictures(args.scenes, args.modes, min(args.seeds), work)
     print(out.with_suffix(".md").read_text(), f"\n{time.time() - t0:.0f} s")
     return 0
 

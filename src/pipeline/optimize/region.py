@@ -38,8 +38,10 @@ class SurfelRegion:
     hull: list[np.ndarray] | None  # per view (H, W) bool: the mask grown by the tolerance; None: no masks
 
     def contains(self, means: torch.Tensor | np.ndarray) -> torch.Tensor:
-        """``(N,)`` bool: which centres ``(N, 3)`` (normalised frame) are inside."""
-        p = torch.as_tensor(means).detach().to(torch.float64).cpu().numpy()
+        """``(N,)`` bool on the centres' device: which centres ``(N, 3)`` (normalised frame)
+        are inside."""
+        means = torch.as_tensor(means)
+        p = means.detach().to(torch.float64).cpu().numpy()
         inside = np.einsum("ij,ij->i", p, p) <= self.sphere_radius ** 2
         if self.hull is not None:
             for K, w2c, hull in zip(self.K, self.world_to_cam, self.hull):
@@ -53,7 +55,7 @@ class SurfelRegion:
                 seen = front & (u >= 0) & (u < w) & (v >= 0) & (v < h)
                 idx = np.flatnonzero(seen)
                 inside[idx[~hull[v[idx].astype(np.int64), u[idx].astype(np.int64)]]] = False
-        return torch.from_numpy(inside)
+        return torch.from_numpy(inside).to(means.device)
 
     def facts(self) -> dict:
         return {"sphere_radius": self.sphere_radius, "mask_hull": self.hull is not None}
