@@ -57,9 +57,6 @@ class SurfelRegion:
                 inside[idx[~hull[v[idx].astype(np.int64), u[idx].astype(np.int64)]]] = False
         return torch.from_numpy(inside).to(means.device)
 
-    def facts(self) -> dict:
-        return {"sphere_radius": self.sphere_radius, "mask_hull": self.hull is not None}
-
 
 def region_from_views(scene, masks: list[np.ndarray] | None, cfg: OptimizeConfig) -> SurfelRegion | None:
     """The region of ``scene`` (its ``K`` and ``world_to_cam_normalised()``) with the training's

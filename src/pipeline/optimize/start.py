@@ -48,7 +48,7 @@ def init_from_cloud(cloud: PointCloud, scene: Scene, cfg: OptimizeConfig, where:
     if region is not None and n_cloud:
         keep = region.contains(pts).numpy()
         pts, normals, colors = pts[keep], normals[keep], colors[keep]
-        if n_cloud and not len(pts):
+        if not len(pts):
             raise DegenerateResultError(f"{where}: none of its {n_cloud} init points lies inside the region "
                                         f"(optimize.region: the sphere of radius {region.sphere_radius} and the masks' "
                                         f"visual hull); is the cloud in this scene's frame?")
