@@ -50,14 +50,14 @@ def gcgs(args: list[str], log: Path, env: dict) -> None:
         raise RuntimeError(f"gcgs {' '.join(args)} failed ({res.returncode}); log {log}")
 
 
-def run_one(preset: str, scene: str, seed: int, inputs: Path, work: Path, threads: int, commit: str) -> dict:
+def run_one(preset: str, scene: str, seed: int, params: dict, inputs: Path, work: Path, threads: int,
+            commit: str) -> dict:
     cell = work / preset / scene / f"seed{seed}"
     row_file = cell / "row.json"
     if row_file.is_file():
         return json.loads(row_file.read_text())
     cell.mkdir(parents=True, exist_ok=True)
-    params = compose_params([f"optimize={preset}"])
-    params["optimize"]["seed"] = seed
+    params = {**params, "optimize": {**params["optimize"], "seed": seed}}
     (cell / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     env = dict(os.environ, GCGS_THREADS=str(threads))
     log, p = cell / "log.txt", ["--params", str(cell / "params.yaml")]
@@ -102,18 +102,24 @@ def main() -> int:
     if old.is_file():  # rows of other presets or seeds at the same commit stay
         rows = [r for r in read_rows(old) if r["commit"] == commit]
     lock = threading.Lock()
+    params = {p: compose_params([f"optimize={p}"]) for p in args.presets}  # Hydra's compose is not thread-safe
 
     def one(run: tuple[str, str, int]) -> None:
-        row = run_one(*run, args.inputs.resolve(), args.work.resolve(), args.threads, commit)
+        row = run_one(*run, params[run[0]], args.inputs.resolve(), args.work.resolve(), args.threads, commit)
         with lock:
             rows[:] = [r for r in rows if (r["preset"], r["scene"], r["seed"]) != run] + [row]
             write_report(rows, out / "presets.csv", out / "presets.md", out / "presets.png")
             print(f"[presets] {run}: {row['overall_mm']:.3f} mm, {row['train_cpu_s']:.0f} s CPU", flush=True)
 
+    failed = []
     with ThreadPoolExecutor(args.jobs) as pool:
-        for f in [pool.submit(one, r) for r in runs]:
-            f.result()
-    return 0
+        for run, f in [(r, pool.submit(one, r)) for r in runs]:
+            try:
+                f.result()
+            except RuntimeError as exc:  # one failed run does not stop the others
+                failed.append(run)
+                print(f"[presets] {run}: {exc}", file=sys.stderr, flush=True)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
