@@ -260,14 +260,15 @@ def test_plane_homographies_match_ray_plane_intersection():
 
 
 # ------------------------------------------------------------------ 2. slow reference
+@pytest.mark.parametrize("kernel", ["fused", "torch"])
 @pytest.mark.parametrize("seed,patch,max_fb,gamma", [(0, 3, 0.05, 0.0), (1, 5, 0.2, 0.0), (2, 3, 1.0, 0.0),
                                                     (0, 3, 0.2, 0.05), (1, 5, 1.0, 0.1)])
-def test_matches_slow_reference(seed, patch, max_fb, gamma):
+def test_matches_slow_reference(seed, patch, max_fb, gamma, kernel):
     p = random_problem(seed)
     h, w = p["depth"].shape
     p["grey_ref"][: 2 * h // 2, : 2 * w // 3] = 0.4  # a textureless block: excluded pairs
     pixels = all_pixels(h, w)
-    out = multiview_consistency(**to_torch(p, pixels, patch=patch, max_fb_px=max_fb, ncc_gamma=gamma))
+    out = multiview_consistency(**to_torch(p, pixels, patch=patch, max_fb_px=max_fb, ncc_gamma=gamma, kernel=kernel))
     photo, geo, frac, n_valid, n_geo = slow_reference(
         p["depth"], p["normal"], pixels.tolist(), p["K_train"], p["K_full"], p["grey_ref"], p["sources"],
         patch, 0.01, max_fb, gamma)
@@ -326,14 +327,53 @@ def test_float32_close_to_float64():
     assert o32["geo"].item() == pytest.approx(o64["geo"].item(), abs=1e-4)
 
 
+@pytest.mark.parametrize("dtype,gamma", [(torch.float64, 0.0), (torch.float64, 0.05), (torch.float32, 0.0),
+                                         (torch.float32, 0.05)])
+def test_fused_kernels_match_the_torch_composition(dtype, gamma):
+    """The numba kernels (``kernel='fused'``) against their torch reference on a larger
+    problem: the same valid pairs, terms and gradients (float rounding apart)."""
+    p = random_problem(7, h=24, w=32, s=2, noise_image=False)
+    args = to_torch(p, all_pixels(24, 32), patch=7, max_fb_px=1.0, ncc_gamma=gamma)
+    cast = (lambda x: x.to(dtype) if torch.is_tensor(x) else x)  # noqa: E731
+    args = {k: cast(v) for k, v in args.items()}
+    args["pixels"] = all_pixels(24, 32)
+    args["sources"] = [SourceView(*(None if x is None else x.to(dtype) for x in
+                                    (s.K_full, s.ref_to_src, s.grey_full, s.depth_train, s.K_train)))
+                       for s in args["sources"]]
+    outs, grads = [], []
+    for kernel in ("fused", "torch"):
+        depth = args["depth"].clone().requires_grad_()
+        normal = args["normal"].clone().requires_grad_()
+        out = multiview_consistency(depth, normal, **{k: v for k, v in args.items() if k not in ("depth", "normal")},
+                                    kernel=kernel)
+        outs.append(out)
+        grads.append(torch.autograd.grad(out["photo"] + out["geo"], (depth, normal)))
+    (f, t), ((fd, fn), (td, tn)) = outs, grads
+    assert 0.3 < t["valid_fraction"].item() < 1.0  # valid and invalid pairs
+    assert f["valid_fraction"].item() == t["valid_fraction"].item()
+    tol = 1e-10 if dtype == torch.float64 else 2e-5
+    assert f["photo"].item() == pytest.approx(t["photo"].item(), rel=tol, abs=tol)
+    assert f["geo"].item() == pytest.approx(t["geo"].item(), rel=tol, abs=tol)
+    for a, b in ((fd, td), (fn, tn)):
+        assert b.abs().max() > 0
+        torch.testing.assert_close(a, b, rtol=tol * 50, atol=tol * float(b.abs().max()) * 50)
+
+
+def test_fused_kernel_refuses_other_devices_and_names():
+    p = random_problem(0)
+    with pytest.raises(ValueError, match="kernel must be one of"):
+        multiview_consistency(**to_torch(p, all_pixels(*p["depth"].shape), kernel="numba"))
+
+
 # --------------------------------------------------------------------------- 3. gradcheck
-def test_gradcheck_photo_and_geo():
+@pytest.mark.parametrize("kernel", ["fused", "torch"])
+def test_gradcheck_photo_and_geo(kernel):
     """Photo: sources without depth (weight 1; with depth the weight exp(-phi) is detached on
     purpose, so finite differences would see a dependence autograd does not). Geo: the
     source with a rendered depth."""
     p = random_problem(5, h=5, w=6, noise_image=False, depth_noise=0.003, src_depth_noise=0.01, zero_frac=0.0)
     pixels = torch.tensor([[2, 2], [3, 2], [3, 3], [2, 1]])
-    args = to_torch(p, pixels, patch=3, max_fb_px=2.0)
+    args = to_torch(p, pixels, patch=3, max_fb_px=2.0, kernel=kernel)
     depth = args.pop("depth").requires_grad_()
     normal = args.pop("normal").requires_grad_()
     out = multiview_consistency(depth, normal, **args)
@@ -582,14 +622,15 @@ def test_forward_backward_occlusion(scene):
 
 
 # ------------------------------------------------------------- best_source_ncc (pruning)
+@pytest.mark.parametrize("kernel", ["fused", "torch"])
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_best_source_ncc_matches_slow_reference(seed):
+def test_best_source_ncc_matches_slow_reference(seed, kernel):
     """Per pixel, the best over sources of 1 - the slow reference's cost of that single
     (pixel, source) pair without depth check (its cost is 1 - NCC there), nan where no pair
     is valid."""
     p = random_problem(seed, noise_image=seed != 1)
     pixels = all_pixels(*p["depth"].shape)
-    args = to_torch(p, pixels)
+    args = to_torch(p, pixels, kernel=kernel)
     args["sources"] = [SourceView(s.K_full, s.ref_to_src, s.grey_full) for s in args["sources"]]
     got = best_source_ncc(**args, patch=3, min_patch_std=0.01).numpy()
     n_valid = 0

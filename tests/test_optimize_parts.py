@@ -186,7 +186,22 @@ def test_ssim_matches_slow_reference_and_has_gradients():
     ta = torch.tensor(a, requires_grad=True)
     assert abs(float(ssim(ta.detach(), torch.tensor(b))) - _ssim_slow(a, b)) < 1e-10
     assert abs(float(ssim(torch.tensor(a), torch.tensor(a))) - 1.0) < 1e-12
-    assert torch.autograd.gradcheck(lambda x: ssim(x, torch.tensor(b)), (ta,))
+    assert torch.autograd.gradcheck(lambda x: ssim(x, torch.tensor(b)), (ta,))  # closed-form backward
+    sa, sb = (torch.tensor(v[:, :5, :6], requires_grad=True) for v in (a, b))  # both: autograd through the blurs
+    assert torch.autograd.gradcheck(lambda x, y: ssim(x, y), (sa, sb))
+
+
+def test_ssim_closed_form_gradient_matches_autograd_at_training_size():
+    """The closed-form backward of ``ssim(render, target)`` against autograd through the
+    same forward (``target`` marked as needing a gradient takes that path), float32."""
+    torch.manual_seed(0)
+    a, b = torch.rand(3, 150, 200), torch.rand(3, 150, 200)
+    x1 = a.clone().requires_grad_()
+    ssim(x1, b).backward()
+    x2, y2 = a.clone().requires_grad_(), b.clone().requires_grad_()
+    ssim(x2, y2).backward()
+    assert x1.grad.abs().max() > 0
+    torch.testing.assert_close(x1.grad, x2.grad, rtol=1e-4, atol=1e-5 * float(x2.grad.abs().max()))
 
 
 def test_depth_to_normals_of_a_plane_faces_the_camera():

@@ -20,8 +20,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from pipeline.losses import _mv_kernels
 
 # Added under the square root of the NCC denominator (PGSR's value; grey in [0, 1]).
 NCC_EPS = 1e-8
@@ -67,9 +70,13 @@ def _homographies(K_ref_inv: torch.Tensor, K_src: torch.Tensor, R: torch.Tensor,
     """``(M, 3, 3)``: ``K_src (R + t m^T) K_ref^-1`` for each row m of ``n_over_rho`` (M, 3).
 
     For X on the plane ``n . X = rho``: ``R X + t = R X + t (n . X) / rho = (R + t n^T / rho) X``.
+    Formed as ``K_src R K_ref^-1 + (K_src t) (K_ref^-T m)^T``: one constant matrix plus an
+    outer product per plane (no batched 3 x 3 products).
     """
-    A = R.unsqueeze(0) + t.view(1, 3, 1) * n_over_rho.unsqueeze(1)
-    return K_src @ A @ K_ref_inv
+    C = K_src @ R @ K_ref_inv
+    u = K_src @ t
+    v = n_over_rho @ K_ref_inv  # rows m^T K_ref^-1
+    return C.unsqueeze(0) + u.view(1, 3, 1) * v.unsqueeze(1)
 
 
 def plane_homographies(K_ref, K_src, ref_to_src, normals, points) -> torch.Tensor:
@@ -198,8 +205,8 @@ def _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, pa
 class _ReferencePatches:
     """The reference side shared by both consistency measures: the sampled pixels' points
     ``X`` (training camera frame) and planes (``n / rho``), and their full-resolution
-    patches (centred grey ``a_c``, variance ``var_a``, homogeneous positions ``ref_h``;
-    ``weight`` (M, P): support weights summing to 1 per patch, ``None``: uniform)."""
+    patches (centred grey ``a_c``, variance ``var_a``, positions ``ref_pos`` (M, P, 2) as
+    (x, y); ``weight`` (M, P): support weights summing to 1 per patch, ``None``: uniform)."""
 
     Kt: torch.Tensor
     Kf_inv: torch.Tensor
@@ -209,7 +216,7 @@ class _ReferencePatches:
     a_c: torch.Tensor
     var_a: torch.Tensor
     ok: torch.Tensor
-    ref_h: torch.Tensor
+    ref_pos: torch.Tensor
     weight: torch.Tensor | None
 
 
@@ -285,8 +292,7 @@ def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, pa
 
     ref_pos, ref_inside, a_c, var_a, weight = _patch_moments(grey_ref, pix, sx, sy, patch, ncc_gamma)
     ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
-    ref_h = torch.cat([ref_pos, torch.ones_like(ref_pos[..., :1])], -1)  # (M, P, 3)
-    return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_h, weight)
+    return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_pos, weight)
 
 
 def _warp_into(ref: _ReferencePatches, src: SourceView, like: torch.Tensor):
@@ -298,7 +304,8 @@ def _warp_into(ref: _ReferencePatches, src: SourceView, like: torch.Tensor):
     R, t = T[:3, :3], T[:3, 3]
     Hs, Ws = src.grey_full.shape
     Hm = _homographies(ref.Kf_inv, _as(src.K_full, like), R, t, ref.n_over_rho)
-    uvw = torch.einsum("mij,mpj->mpi", Hm, ref.ref_h)
+    ref_h = torch.cat([ref.ref_pos, torch.ones_like(ref.ref_pos[..., :1])], -1)  # (M, P, 3)
+    uvw = torch.einsum("mij,mpj->mpi", Hm, ref_h)
     wz = uvw[..., 2]
     w_pos = wz > MIN_Z
     pos = uvw[..., :2] / torch.where(w_pos, wz, torch.ones_like(wz)).unsqueeze(-1)
@@ -330,6 +337,62 @@ def _ncc(ref: _ReferencePatches, grey: torch.Tensor, pos: torch.Tensor, valid: t
     b_c = b - (w * b).sum(-1, keepdim=True)
     cov = (w * ref.a_c * b_c).sum(-1)
     return cov / torch.sqrt(ref.var_a * (w * b_c * b_c).sum(-1) + NCC_EPS)
+
+
+class _WarpNCC(torch.autograd.Function):
+    """NCC of each reference patch warped into a source through ``Hm (M, 3, 3)`` and whether
+    the warped patch is inside it, differentiable in ``Hm``: the fused CPU kernels of
+    :mod:`pipeline.losses._mv_kernels` (``_warp_into`` + ``_ncc`` is their reference)."""
+
+    @staticmethod
+    def forward(ctx, Hm, ref_pos, grey, a_c, var_a, weight, usable):
+        arrays = [x.detach().contiguous().numpy() for x in (Hm, ref_pos, grey, a_c, var_a, weight)]
+        M, P = a_c.shape
+        ncc, inside = np.empty(M, arrays[0].dtype), np.empty(M, np.bool_)
+        _mv_kernels.warp_ncc_forward(*arrays, usable.contiguous().numpy(), NCC_EPS, MIN_Z, ncc, inside,
+                           np.empty((M, P), arrays[0].dtype))
+        ctx.arrays, ctx.inside = arrays, inside
+        inside_t = torch.from_numpy(inside)
+        ctx.mark_non_differentiable(inside_t)
+        return torch.from_numpy(ncc), inside_t
+
+    @staticmethod
+    def backward(ctx, grad_ncc, _grad_inside):
+        Hm, ref_pos, grey, a_c, var_a, weight = ctx.arrays
+        grad_H = np.empty_like(Hm)
+        _mv_kernels.warp_ncc_backward(Hm, ref_pos, grey, a_c, var_a, weight, ctx.inside, NCC_EPS, MIN_Z,
+                            grad_ncc.detach().contiguous().numpy(), grad_H, np.empty(a_c.shape + (6,), a_c.dtype))
+        return torch.from_numpy(grad_H), None, None, None, None, None, None
+
+
+KERNELS = ("auto", "fused", "torch")
+
+
+def _check_kernel(kernel: str, like: torch.Tensor) -> None:
+    if kernel not in KERNELS or (kernel == "fused" and like.device.type != "cpu"):
+        raise ValueError(f"kernel must be one of {KERNELS} ('fused' on CPU tensors only), got {kernel!r} "
+                         f"for {like.device.type} tensors")
+
+
+def _warp_ncc(ref: _ReferencePatches, src: SourceView, like: torch.Tensor, kernel: str):
+    """The reference patches warped into ``src`` and their NCC there: ``(R, t, Xs, front,
+    valid, ncc)`` as :func:`_warp_into` and :func:`_ncc` give them. ``kernel``: ``torch``
+    composes them in torch (the reference; any device), ``fused`` runs the numba kernels
+    (CPU), ``auto`` the fused ones on CPU tensors."""
+    if kernel == "torch" or (kernel == "auto" and like.device.type != "cpu"):
+        R, t, pos, Xs, front, valid = _warp_into(ref, src, like)
+        return R, t, Xs, front, valid, _ncc(ref, _as(src.grey_full, like).detach(), pos, valid)
+    T = _as(src.ref_to_src, like)
+    R, t = T[:3, :3], T[:3, 3]
+    Hm = _homographies(ref.Kf_inv, _as(src.K_full, like), R, t, ref.n_over_rho)
+    Xs = ref.X @ R.t() + t
+    front = Xs[:, 2] > MIN_Z
+    usable = ref.ok & front
+    M, P = ref.a_c.shape
+    weight = ref.weight if ref.weight is not None else torch.full((M, P), 1.0 / P, dtype=like.dtype)
+    ncc, inside = _WarpNCC.apply(Hm, ref.ref_pos, _as(src.grey_full, like).detach(), ref.a_c.detach(),
+                                 ref.var_a.detach(), weight.detach(), usable.detach())
+    return R, t, Xs, front, usable & inside, ncc
 
 
 def reference_pixels(surface: torch.Tensor, normal: torch.Tensor, K_train: torch.Tensor,
@@ -373,6 +436,7 @@ def multiview_consistency(
     ncc_gamma: float = 0.0,
     best_sources: int = 0,
     max_cost: float = 2.0,
+    kernel: str = "auto",
 ) -> dict[str, torch.Tensor]:
     """PGSR's multi-view photometric and geometric consistency of one reference view.
 
@@ -418,6 +482,8 @@ def multiview_consistency(
         best_sources: > 0: of each pixel's valid pairs only the ``best_sources`` of lowest
             cost count (ties by source order), in both terms; 0: all (PGSR's).
         max_cost: pairs whose cost exceeds it are invalid (2: none is).
+        kernel: how the patches are warped and compared: ``fused`` numba kernels (CPU
+            tensors), ``torch`` (any device; their reference), ``auto`` fused on CPU.
 
     Returns ``{"photo": sum of exp(-phi) cost over valid pairs / number of valid pairs,
     "geo": mean phi over valid pairs with the check (training pixels),
@@ -425,6 +491,7 @@ def multiview_consistency(
     is a zero that is connected to ``depth`` and ``normal`` (zero gradients).
     """
     _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma)
+    _check_kernel(kernel, depth)
     M = len(pixels)
 
     # A zero that carries depth's and normal's graph with exactly zero gradients
@@ -436,8 +503,8 @@ def multiview_consistency(
 
     costs, weights, valids, phis, checked = [], [], [], [], []
     for src in sources:
-        R, t, pos, Xs, front, valid = _warp_into(ref, src, depth)
-        cost = (1.0 - _ncc(ref, _as(src.grey_full, depth).detach(), pos, valid)).clamp(0.0, 2.0)
+        R, t, Xs, front, valid, ncc = _warp_ncc(ref, src, depth, kernel)
+        cost = (1.0 - ncc).clamp(0.0, 2.0)
 
         weight = torch.ones_like(cost)
         phi = torch.zeros_like(cost)
@@ -493,6 +560,7 @@ def best_source_ncc(
     min_patch_std: float = 0.01,
     occlusion_rel_tol: float = 0.01,
     ncc_gamma: float = 0.0,
+    kernel: str = "auto",
 ) -> torch.Tensor:
     """Per pixel, the best NCC over the sources of the reference patch warped through the
     pixel's rendered plane: the evidence :func:`multiview_consistency` optimises, as a
@@ -505,15 +573,16 @@ def best_source_ncc(
     it) is smaller than the point's depth there by more than ``occlusion_rel_tol``
     (relative), or it has none. ``ncc_gamma`` as there (0: plain NCC). Returns ``(M,)``:
     the largest NCC in [-1, 1] over the valid sources; ``nan`` where no source is valid or
-    the reference patch is flatter than ``min_patch_std`` (no evidence either way)."""
+    the reference patch is flatter than ``min_patch_std`` (no evidence either way).
+    ``kernel`` as there."""
     _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma)
+    _check_kernel(kernel, depth)
     ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
     best = torch.full_like(ref.X[:, 2], float("nan"))
     for src in sources:
-        _, _, pos, Xs, front, valid = _warp_into(ref, src, depth)
+        _, _, Xs, front, valid, ncc = _warp_ncc(ref, src, depth, kernel)
         if src.depth_train is not None:
             _, zs, d_src, d_ok = _source_depth_at(Xs, front, src, depth)
-            valid &= d_ok & (zs <= d_src * (1.0 + occlusion_rel_tol))
-        ncc = _ncc(ref, _as(src.grey_full, depth), pos, valid)
+            valid = valid & d_ok & (zs <= d_src * (1.0 + occlusion_rel_tol))
         best = torch.where(valid & ~(ncc <= best), ncc, best)  # ~(<=): nan best takes any valid ncc
     return best

@@ -16,22 +16,64 @@ def _gaussian_1d(size: int, sigma: float, like: torch.Tensor) -> torch.Tensor:
     return g / g.sum()
 
 
+def _blur(stack: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The separable Gaussian ``g`` over each channel of ``(N, H, W)``, zero padding: two 1-D
+    passes (11x fewer taps than the 2-D convolution). The kernel is symmetric, so this is
+    also its own adjoint."""
+    n, window = stack.shape[0], g.shape[0]
+    pad = window // 2
+    out = F.conv2d(stack.unsqueeze(0), g.view(1, 1, 1, -1).expand(n, 1, 1, window), padding=(0, pad), groups=n)
+    return F.conv2d(out, g.view(1, 1, -1, 1).expand(n, 1, window, 1), padding=(pad, 0), groups=n)[0]
+
+
+def _ssim_parts(img1: torch.Tensor, img2: torch.Tensor, g: torch.Tensor):
+    """The local moments and the SSIM map's numerator and denominator factors."""
+    C = img1.shape[0]
+    mu1, mu2, e11, e22, e12 = _blur(torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2]), g).split(C)
+    a1 = 2 * mu1 * mu2 + SSIM_C1
+    a2 = 2 * (e12 - mu1 * mu2) + SSIM_C2
+    b1 = mu1 * mu1 + mu2 * mu2 + SSIM_C1
+    b2 = (e11 - mu1 * mu1) + (e22 - mu2 * mu2) + SSIM_C2
+    return mu1, mu2, a1, a2, b1, b2
+
+
+class _SSIMOfFirst(torch.autograd.Function):
+    """Mean SSIM differentiable in the first image only (the render against a constant
+    target), with its gradient in closed form. Per pixel the map ``a1 a2 / (b1 b2)`` moves
+    with the blurred moments ``mu1``, ``E[x^2]`` and ``E[xy]``; each moment's sensitivity is
+    blurred back (the window is its own adjoint) and chained to ``x``: three blurs in place
+    of the convolutions' backward, which costs several times their forward here."""
+
+    @staticmethod
+    def forward(ctx, img1, img2, g):
+        mu1, mu2, a1, a2, b1, b2 = _ssim_parts(img1, img2, g)
+        ssim_map = a1 * a2 / (b1 * b2)
+        ctx.save_for_backward(img1, img2, g, mu1, mu2, a1, a2, b1, b2, ssim_map)
+        return ssim_map.mean()
+
+    @staticmethod
+    def backward(ctx, grad):
+        img1, img2, g, mu1, mu2, a1, a2, b1, b2, ssim_map = ctx.saved_tensors
+        scale = grad / ssim_map.numel()
+        inv = scale / (b1 * b2)
+        d_mu1 = 2 * mu2 * (a2 - a1) * inv - 2 * mu1 * ssim_map * (b2 - b1) * inv
+        d_e11 = -ssim_map * scale / b2
+        d_e12 = 2 * a1 * inv
+        C = img1.shape[0]
+        g_mu1, g_e11, g_e12 = _blur(torch.cat([d_mu1, d_e11, d_e12]), g).split(C)
+        return g_mu1 + 2 * img1 * g_e11 + img2 * g_e12, None, None
+
+
 def ssim(img1: torch.Tensor, img2: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
     """Mean SSIM of two ``(C, H, W)`` images in [0, 1] (Wang et al. 2004; 11x11 Gaussian
-    window, sigma 1.5, zero padding as 3DGS/2DGS). The window is separable: two 1-D passes
-    over the five moment images at once (11x fewer taps than the 2-D convolution)."""
-    C = img1.shape[0]
+    window, sigma 1.5, zero padding as 3DGS/2DGS). Differentiable in both; when only
+    ``img1`` needs a gradient (a render against its target) the gradient is in closed form
+    (:class:`_SSIMOfFirst`)."""
     g = _gaussian_1d(window, sigma, img1)
-    pad = window // 2
-    stack = torch.cat([img1, img2, img1 * img1, img2 * img2, img1 * img2]).unsqueeze(0)  # (1, 5C, H, W)
-    n = stack.shape[1]
-    blur = F.conv2d(stack, g.view(1, 1, 1, -1).expand(n, 1, 1, window), padding=(0, pad), groups=n)
-    blur = F.conv2d(blur, g.view(1, 1, -1, 1).expand(n, 1, window, 1), padding=(pad, 0), groups=n)
-    mu1, mu2, e11, e22, e12 = blur[0].split(C)
-    s11, s22, s12 = e11 - mu1 * mu1, e22 - mu2 * mu2, e12 - mu1 * mu2
-    num = (2 * mu1 * mu2 + SSIM_C1) * (2 * s12 + SSIM_C2)
-    den = (mu1 * mu1 + mu2 * mu2 + SSIM_C1) * (s11 + s22 + SSIM_C2)
-    return (num / den).mean()
+    if img1.requires_grad and not img2.requires_grad:
+        return _SSIMOfFirst.apply(img1, img2, g)
+    _, _, a1, a2, b1, b2 = _ssim_parts(img1, img2, g)
+    return (a1 * a2 / (b1 * b2)).mean()
 
 
 def photometric_loss(render: torch.Tensor, target: torch.Tensor, lambda_dssim: float) -> tuple[torch.Tensor, torch.Tensor]:
