@@ -43,25 +43,32 @@ KERNELS = {
     "raster backward kernels": ("backward", "simd.backward_all", "reduce_and_chain"),
     "raster set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles", "simd.depth_order"),
 }
+MV_KERNELS = "L_mv's warp and NCC kernels (forward and backward)"
 AUTOGRAD = "torch autograd (loss terms' backward)"
-LOSS_FORWARD = "loss terms' forward"
+LOSS_FORWARD = "loss terms' forward (torch)"
 REST = "rest (optimizer, densification, wrappers, loop)"
-CATEGORIES = list(KERNELS) + [AUTOGRAD, LOSS_FORWARD, REST]
+CATEGORIES = list(KERNELS) + [MV_KERNELS, AUTOGRAD, LOSS_FORWARD, REST]
 
 
 def split_profile(stats: pstats.Stats, total_s: float) -> dict[str, float]:
     """Seconds per category of a cProfile run of training steps lasting ``total_s``: the
     kernels' and the autograd engine's own time, the loss terms' cumulative time (their
-    torch calls included), and the rest."""
+    torch calls included, L_mv's forward kernel not), and the rest."""
     out = dict.fromkeys(CATEGORIES, 0.0)
     own = kernel_seconds(stats)
     for category, funcs in KERNELS.items():
         out[category] = sum(own[f] for f in funcs)
+    mv_forward = 0.0
     for (path, _line, name), (_cc, _nc, own_s, cum, _callers) in stats.stats.items():
+        path = path.replace(os.sep, "/")
         if name == "<method 'run_backward' of 'torch._C._EngineBase' objects>":
             out[AUTOGRAD] += own_s
-        if path.replace(os.sep, "/").endswith("optimize/train.py") and name == "loss_terms":
+        if path.endswith("optimize/train.py") and name == "loss_terms":
             out[LOSS_FORWARD] += cum
+        if path.endswith("losses/_mv_kernels.py") and name in ("warp_ncc_forward", "warp_ncc_backward"):
+            out[MV_KERNELS] += own_s
+            mv_forward += own_s if name == "warp_ncc_forward" else 0.0
+    out[LOSS_FORWARD] = max(out[LOSS_FORWARD] - mv_forward, 0.0)
     out[REST] = max(total_s - sum(v for k, v in out.items() if k != REST), 0.0)
     return out
 
