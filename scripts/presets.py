@@ -40,6 +40,13 @@ def commit_of_code() -> str:
                           check=True).stdout.strip()
 
 
+def release(reports: list[Path]) -> None:
+    """The committed reports are this runner's own (a fresh clone's copies carry no gcgs
+    mark, so the writer would refuse them): their rows are read before this, and rewritten."""
+    for path in reports:
+        path.unlink(missing_ok=True)
+
+
 def gcgs(args: list[str], log: Path, env: dict) -> None:
     with open(log, "a") as f:
         f.write("$ gcgs " + " ".join(args) + "\n")
@@ -90,8 +97,11 @@ def main() -> int:
     ap.add_argument("--report-only", action="store_true", help="rewrite reports/presets.* from reports/presets.csv")
     args = ap.parse_args()
     out = REPO / "reports"
+    reports = [out / "presets.csv", out / "presets.md", out / "presets.png"]
     if args.report_only:
-        write_report(read_rows(out / "presets.csv"), out / "presets.csv", out / "presets.md", out / "presets.png")
+        rows = read_rows(reports[0])
+        release(reports)
+        write_report(rows, *reports)
         return 0
     commit = commit_of_code()
     order = {p: i for i, p in enumerate(LADDER)}
@@ -101,6 +111,7 @@ def main() -> int:
     old = out / "presets.csv"
     if old.is_file():  # rows of other presets or seeds at the same commit stay
         rows = [r for r in read_rows(old) if r["commit"] == commit]
+    release(reports)
     lock = threading.Lock()
     params = {p: compose_params([f"optimize={p}"]) for p in args.presets}  # Hydra's compose is not thread-safe
 
@@ -108,7 +119,7 @@ def main() -> int:
         row = run_one(*run, params[run[0]], args.inputs.resolve(), args.work.resolve(), args.threads, commit)
         with lock:
             rows[:] = [r for r in rows if (r["preset"], r["scene"], r["seed"]) != run] + [row]
-            write_report(rows, out / "presets.csv", out / "presets.md", out / "presets.png")
+            write_report(rows, *reports)
             print(f"[presets] {run}: {row['overall_mm']:.3f} mm, {row['train_cpu_s']:.0f} s CPU", flush=True)
 
     failed = []
