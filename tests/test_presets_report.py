@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from pipeline.errors import InputError
-from pipeline.reports.presets import COLUMNS, read_rows, rises, summarize, write_report
+from pipeline.reports.presets import COLUMNS, markdown, read_rows, rises, summarize, write_report
 
 
 def _rows(means: dict[str, float], scenes=("a", "b"), seeds=(0, 1, 2), seed_step=0.004) -> list[dict]:
@@ -68,6 +68,13 @@ def test_report_round_trip_and_markdown(tmp_path):
     md = (tmp_path / "p.md").read_text()
     assert "`long` is 0.020 mm above `fast`" in md
     assert (tmp_path / "p.png").stat().st_size > 0
+
+
+def test_markdown_leaves_a_partly_run_preset_out_of_the_check():
+    rows = _rows({"fast": 1.40, "long": 1.38}) + _rows({"paper": 1.50}, scenes=("a",), seeds=(0,))
+    md = markdown(summarize(rows), ["abc1234"])
+    assert "More time never bought a worse mean surface" in md  # paper (one scene, one seed) not compared
+    assert "Not compared (fewer scenes or seeds than `fast`): `paper`." in md
 
 
 def test_read_rows_refuses_other_columns_and_bad_numbers(tmp_path):

@@ -132,11 +132,17 @@ def markdown(summaries: list[PresetSummary], commits: list[str]) -> str:
         cells += [f"{s.overall_mm:.3f}", f"{s.accuracy_mm:.3f}", f"{s.completeness_mm:.3f}", f"{s.train_cpu_s:.0f}",
                   f"{s.train_wall_s:.0f}", f"{s.peak_rss_mb:.0f}"]
         lines.append("| " + " | ".join(cells) + " |")
-    found = rises(summaries)
+    # A preset run on fewer scenes (or seeds) than the others is not yet a step of the ladder.
+    full = [x for x in summaries if x.scenes == scenes and x.seeds == summaries[0].seeds]
+    partial = [x.preset for x in summaries if x not in full]
+    found = rises(full)
     lines += ["", "More time never bought a worse mean surface (beyond "
               f"{RISE_TOLERANCE_MM} mm)." if not found else
               "More time bought a worse mean surface: " + "; ".join(
                   f"`{b}` is {d:.3f} mm above `{a}`" for a, b, d in found) + "."]
+    if partial:
+        lines.append(f"Not compared (fewer scenes or seeds than `{summaries[0].preset}`): "
+                     + ", ".join(f"`{p}`" for p in partial) + ".")
     return "\n".join(lines) + "\n"
 
 
