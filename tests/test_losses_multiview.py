@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from pipeline.losses.multiview import (
+    _patch_moments,
     MIN_Z,
     SourceView,
     best_source_ncc,
@@ -795,13 +796,14 @@ def _half_flat_image(H: int, W: int) -> torch.Tensor:
     return grey
 
 
+@pytest.mark.parametrize("kernel", ["fused", "torch"])
 @pytest.mark.parametrize("gamma", [0.0, 0.05])
 @pytest.mark.parametrize("scale", [1, 2])
-def test_textured_pixels_match_slow_reference(gamma, scale):
+def test_textured_pixels_match_slow_reference(gamma, scale, kernel):
     H, W = 36, 48
     h, w = H // scale, W // scale
     grey = _half_flat_image(H, W)
-    got = textured_pixels(grey, h, w, 5, 0.01, gamma, dtype=torch.float64)
+    got = textured_pixels(grey, h, w, 5, 0.01, gamma, dtype=torch.float64, kernel=kernel)
     want, std = _slow_textured(grey.numpy(), h, w, 5, 0.01, gamma)
     assert got.dtype == torch.bool and got.shape == (h, w)
     clear = np.abs(std - 0.01) > 1e-9  # no pixel on the threshold decides the comparison
@@ -809,7 +811,7 @@ def test_textured_pixels_match_slow_reference(gamma, scale):
     # Both kinds present: the flat half and the border are out, the textured half in.
     assert 0 < got.sum() < h * w and not got[:, : w // 2 - 3].any()
     # The chunking does not change the answer.
-    assert torch.equal(textured_pixels(grey, h, w, 5, 0.01, gamma, dtype=torch.float64, chunk=7), got)
+    assert torch.equal(textured_pixels(grey, h, w, 5, 0.01, gamma, dtype=torch.float64, chunk=7, kernel=kernel), got)
 
 
 @pytest.mark.parametrize("gamma", [0.0, 0.05])
@@ -833,6 +835,29 @@ def test_textured_pixels_are_where_the_loss_can_have_a_pair(gamma, dtype):
         pix = torch.stack([xs[keep.reshape(-1)], ys[keep.reshape(-1)]], 1)
         out = multiview_consistency(**dict(args, pixels=pix))
         assert (out["valid_fraction"] > 0) == has_pairs
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.05])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_patch_moments_kernel_matches_the_torch_composition(gamma, dtype):
+    """The reference patches from the numba kernel against their torch composition, patches
+    across the image's border (clamped samples) included, at a downscale of 2.5 and 1."""
+    grey = _half_flat_image(30, 40).to(dtype)
+    for h, w in ((12, 16), (30, 40)):
+        ys, xs = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+        pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1).to(dtype)
+        fused = _patch_moments(grey, pix, 40 / w, 30 / h, 5, gamma, "fused")
+        ref = _patch_moments(grey, pix, 40 / w, 30 / h, 5, gamma, "torch")
+        assert 0 < int(ref[1].sum()) < h * w  # patches inside and across the border
+        tol = 1e-12 if dtype == torch.float64 else 1e-5  # float32: the kernel's sums run in float64
+        for a, b in zip(fused, ref):
+            if b is None:
+                assert a is None
+            elif b.dtype == torch.bool:
+                assert torch.equal(a, b)
+            else:
+                assert a.dtype == dtype
+                torch.testing.assert_close(a, b, rtol=tol, atol=tol)
 
 
 def test_textured_pixels_bad_input():

@@ -204,6 +204,52 @@ def test_ssim_closed_form_gradient_matches_autograd_at_training_size():
     torch.testing.assert_close(x1.grad, x2.grad, rtol=1e-4, atol=1e-5 * float(x2.grad.abs().max()))
 
 
+def _blur_slow(a: np.ndarray, window: int = 11, sigma: float = 1.5) -> np.ndarray:
+    """Each channel of ``(N, H, W)`` against the explicit 2-D Gaussian window, zero padding."""
+    x = np.arange(window) - window // 2
+    g = np.exp(-(x**2) / (2 * sigma**2))
+    w2 = np.outer(g, g) / g.sum() ** 2
+    p = window // 2
+    N, H, W = a.shape
+    pa = np.pad(a, ((0, 0), (p, p), (p, p)))
+    out = np.empty_like(a)
+    for c in range(N):
+        for i in range(H):
+            for j in range(W):
+                out[c, i, j] = (w2 * pa[c, i:i + window, j:j + window]).sum()
+    return out
+
+
+@pytest.mark.parametrize("shape", [(2, 9, 13), (3, 4, 17), (1, 20, 3), (2, 1, 1)])
+def test_blur_kernel_matches_the_slow_window_and_the_convolutions(shape):
+    """SSIM's blur: the numba kernel against the explicit 2-D window and against torch's
+    separable convolutions (images smaller than the window included), float64 and float32;
+    a strided input is read as its values."""
+    from pipeline.losses.photometric import _blur, _blur_torch, _gaussian_1d
+
+    a = np.random.default_rng(1).random(shape)
+    t = torch.tensor(a)
+    g = _gaussian_1d(11, 1.5, t)
+    np.testing.assert_allclose(_blur(t, g).numpy(), _blur_slow(a), rtol=0, atol=1e-13)
+    torch.testing.assert_close(_blur(t, g), _blur_torch(t, g), rtol=0, atol=1e-13)
+    t32 = t.float()
+    torch.testing.assert_close(_blur(t32, g.float()), _blur_torch(t32, g.float()), rtol=0, atol=1e-6)
+    wide = torch.tensor(np.random.default_rng(2).random((shape[0], shape[1], 2 * shape[2])))[:, :, ::2]
+    torch.testing.assert_close(_blur(wide, g), _blur_torch(wide.contiguous(), g), rtol=0, atol=1e-13)
+
+
+def test_blur_kernel_gradient():
+    """The kernel's backward (the blur of the cotangent: the window is its own adjoint)."""
+    from pipeline.losses.photometric import _blur, _gaussian_1d
+
+    x = torch.tensor(np.random.default_rng(3).random((2, 7, 9)), requires_grad=True)
+    g = _gaussian_1d(11, 1.5, x.detach())
+    assert torch.autograd.gradcheck(lambda v: _blur(v, g), (x,))
+    cot = torch.tensor(np.random.default_rng(4).random((2, 7, 9)))
+    (_blur(x, g) * cot).sum().backward()
+    np.testing.assert_allclose(x.grad.numpy(), _blur_slow(cot.numpy()), rtol=0, atol=1e-13)
+
+
 def test_depth_to_normals_of_a_plane_faces_the_camera():
     K = torch.tensor([[50.0, 0, 16], [0, 55.0, 12], [0, 0, 1]], dtype=torch.float64)
     n_true = torch.tensor([0.3, -0.2, -1.0], dtype=torch.float64)

@@ -137,3 +137,79 @@ def warp_ncc_backward(Hm, ref_pos, grey, a_c, var_a, weight, inside, eps, min_w,
         grad_H[m, 0, 0], grad_H[m, 0, 1], grad_H[m, 0, 2] = h00, h01, h02
         grad_H[m, 1, 0], grad_H[m, 1, 1], grad_H[m, 1, 2] = h10, h11, h12
         grad_H[m, 2, 0], grad_H[m, 2, 1], grad_H[m, 2, 2] = h20, h21, h22
+
+
+@njit(inline="always")
+def _patch(grey, cx, cy, patch, ncc_gamma, pos, a, weight):
+    """One reference patch around ``(cx, cy)``: fills ``pos (P, 2)``, the centred grey ``a (P,)``
+    and the support ``weight (P,)`` (uniform when ``ncc_gamma`` is 0); returns ``(inside,
+    variance)``."""
+    Hh, Ww = grey.shape
+    r = patch // 2
+    P = patch * patch
+    ok = True
+    for p in range(P):
+        x = cx + (p % patch - r)
+        y = cy + (p // patch - r)
+        pos[p, 0] = x
+        pos[p, 1] = y
+        if not (x >= 0.0 and x <= Ww - 1 and y >= 0.0 and y <= Hh - 1):
+            ok = False
+        x = min(max(x, 0.0), Ww - 1.0)
+        y = min(max(y, 0.0), Hh - 1.0)
+        x0 = min(int(math.floor(x)), max(Ww - 2, 0))
+        y0 = min(int(math.floor(y)), max(Hh - 2, 0))
+        x1, y1 = min(x0 + 1, Ww - 1), min(y0 + 1, Hh - 1)
+        fx, fy = x - x0, y - y0
+        top = grey[y0, x0] + fx * (grey[y0, x1] - grey[y0, x0])
+        bottom = grey[y1, x0] + fx * (grey[y1, x1] - grey[y1, x0])
+        a[p] = top + fy * (bottom - top)
+    if ncc_gamma > 0:
+        centre = a[P // 2]
+        total = 0.0
+        for p in range(P):
+            wp = math.exp(-abs(a[p] - centre) / ncc_gamma)
+            weight[p] = wp
+            total += wp
+        for p in range(P):
+            weight[p] = weight[p] / total
+    else:
+        for p in range(P):
+            weight[p] = 1.0 / P
+    mean = 0.0
+    for p in range(P):
+        mean += weight[p] * a[p]
+    var = 0.0
+    for p in range(P):
+        a[p] = a[p] - mean
+        var += weight[p] * a[p] * a[p]
+    return ok, var
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def patch_moments(grey, pix, sx, sy, patch, ncc_gamma, ref_pos, inside, a_c, var_a, weight):
+    """The reference patches of training pixels ``pix (M, 2)`` (x, y) in the full-resolution
+    ``grey (H, W)`` (writes ``ref_pos (M, P, 2)``, ``inside (M,)``, ``a_c (M, P)``, ``var_a
+    (M,)`` and ``weight (M, P)``), as ``multiview._patch_moments``: points at integer offsets,
+    row-major over dy, around ``s (x + 0.5) - 0.5``; bilinear samples with positions clamped
+    to the image (``grid_sample``'s border padding); support weights ``exp(-|a - a_centre| /
+    ncc_gamma)`` normalised to 1, or uniform when ``ncc_gamma`` is 0."""
+    for m in prange(pix.shape[0]):
+        cx = sx * (pix[m, 0] + 0.5) - 0.5
+        cy = sy * (pix[m, 1] + 0.5) - 0.5
+        inside[m], var_a[m] = _patch(grey, cx, cy, patch, ncc_gamma, ref_pos[m], a_c[m], weight[m])
+
+
+@njit(parallel=True, cache=True, error_model="numpy")
+def textured_grid(grey, h, w, patch, ncc_gamma, min_std, out):
+    """``out (h, w)``: whether each training pixel's patch (as :func:`patch_moments`) is inside
+    ``grey`` with a std of at least ``min_std``; the patches live in per-row scratch."""
+    Hh, Ww = grey.shape
+    sx, sy = Ww / w, Hh / h
+    P = patch * patch
+    for y in prange(h):
+        pos, a, weight = np.empty((P, 2)), np.empty(P, grey.dtype), np.empty(P, grey.dtype)
+        cy = sy * (y + 0.5) - 0.5
+        for x in range(w):
+            ok, var = _patch(grey, sx * (x + 0.5) - 0.5, cy, patch, ncc_gamma, pos, a, weight)
+            out[y, x] = ok and math.sqrt(var) >= min_std

@@ -221,11 +221,20 @@ class _ReferencePatches:
 
 
 def _patch_moments(grey_ref: torch.Tensor, pix: torch.Tensor, sx: float, sy: float, patch: int,
-                   ncc_gamma: float):
+                   ncc_gamma: float, kernel: str = "auto"):
     """The full-resolution reference patches of training pixels ``pix`` (M, 2) as (x, y):
     positions ``ref_pos`` (M, P, 2), ``inside`` (M,) the whole patch in the image, centred grey
     ``a_c`` (M, P), variance ``var_a`` (M,) and support ``weight`` (M, P) or ``None``. They
-    depend on the image alone, not on the rendered surface."""
+    depend on the image alone, not on the rendered surface, and carry no gradient.
+    ``kernel`` as :func:`_warp_ncc`'s (``fused``: :func:`_mv_kernels.patch_moments`)."""
+    if not (kernel == "torch" or (kernel == "auto" and grey_ref.device.type != "cpu")):
+        g, q = grey_ref.detach().contiguous().numpy(), pix.detach().to(grey_ref.dtype).contiguous().numpy()
+        M, P = q.shape[0], patch * patch
+        ref_pos, inside = np.empty((M, P, 2), g.dtype), np.empty(M, np.bool_)
+        a_c, var_a, weight = np.empty((M, P), g.dtype), np.empty(M, g.dtype), np.empty((M, P), g.dtype)
+        _mv_kernels.patch_moments(g, q, float(sx), float(sy), patch, float(ncc_gamma), ref_pos, inside, a_c, var_a, weight)
+        out = [torch.from_numpy(x) for x in (ref_pos, inside, a_c, var_a)]
+        return (*out, torch.from_numpy(weight) if ncc_gamma > 0 else None)
     H, W = grey_ref.shape
     # Offsets (dx, dy), row-major over dy.
     r = patch // 2
@@ -252,29 +261,35 @@ def _patch_moments(grey_ref: torch.Tensor, pix: torch.Tensor, sx: float, sy: flo
 
 
 def textured_pixels(grey_ref_full: torch.Tensor, h: int, w: int, patch: int, min_patch_std: float,
-                    ncc_gamma: float, dtype: torch.dtype = torch.float32, chunk: int = 65536) -> torch.Tensor:
+                    ncc_gamma: float, dtype: torch.dtype = torch.float32, chunk: int = 65536,
+                    kernel: str = "auto") -> torch.Tensor:
     """The ``(h, w)`` bool mask of the training pixels whose full-resolution reference patch
     lies inside ``grey_ref_full`` and has a grey std of at least ``min_patch_std``: the only
     pixels where :func:`multiview_consistency` can have a valid pair. The same moments it
     computes (in ``dtype``, the rendered depth's), so sampling L_mv's points among these
     pixels drops only pairs that would have been invalid. Depends on the image alone: compute
-    it once per view and training size."""
+    it once per view and training size. ``kernel`` as :func:`multiview_consistency`'s."""
     _check_reference(grey_ref_full, patch)
+    _check_kernel(kernel, grey_ref_full)
     H, W = grey_ref_full.shape
     grey = grey_ref_full.to(dtype).detach()
+    if not (kernel == "torch" or (kernel == "auto" and grey.device.type != "cpu")):
+        out = np.empty((h, w), np.bool_)
+        _mv_kernels.textured_grid(grey.contiguous().numpy(), h, w, patch, float(ncc_gamma), float(min_patch_std), out)
+        return torch.from_numpy(out)
     dev = grey_ref_full.device
     ys, xs = torch.meshgrid(torch.arange(h, device=dev), torch.arange(w, device=dev), indexing="ij")
     pix = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1).to(dtype)
     out = torch.empty(len(pix), dtype=torch.bool, device=dev)
     for start in range(0, len(pix), chunk):
         part = pix[start:start + chunk]
-        _, inside, _, var_a, _ = _patch_moments(grey, part, W / w, H / h, patch, ncc_gamma)
+        _, inside, _, var_a, _ = _patch_moments(grey, part, W / w, H / h, patch, ncc_gamma, kernel)
         out[start:start + chunk] = inside & (var_a.sqrt() >= min_patch_std)
     return out.reshape(h, w)
 
 
 def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std,
-                       ncc_gamma) -> _ReferencePatches:
+                       ncc_gamma, kernel) -> _ReferencePatches:
     h, w = depth.shape
     Kt, Kf = _as(K_train, depth), _as(K_full, depth)
     grey_ref = _as(grey_ref_full, depth).detach()
@@ -290,7 +305,7 @@ def _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, pa
     rho_ok = rho.abs() > MIN_Z
     n_over_rho = n / torch.where(rho_ok, rho, torch.ones_like(rho)).unsqueeze(1)
 
-    ref_pos, ref_inside, a_c, var_a, weight = _patch_moments(grey_ref, pix, sx, sy, patch, ncc_gamma)
+    ref_pos, ref_inside, a_c, var_a, weight = _patch_moments(grey_ref, pix, sx, sy, patch, ncc_gamma, kernel)
     ok = (z.detach() > MIN_Z) & rho_ok.detach() & ref_inside & (var_a.sqrt() >= min_patch_std)
     return _ReferencePatches(Kt, torch.linalg.inv(Kf), pix, X, n_over_rho, a_c, var_a, ok, ref_pos, weight)
 
@@ -498,7 +513,7 @@ def multiview_consistency(
     # (torch.where sends nothing to the branch it does not take).
     zero = (torch.where(torch.zeros_like(depth, dtype=torch.bool), depth, 0.0).sum()
             + torch.where(torch.zeros_like(normal, dtype=torch.bool), normal, 0.0).sum())
-    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
+    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma, kernel)
     Kt, pix = ref.Kt, ref.pix
 
     costs, weights, valids, phis, checked = [], [], [], [], []
@@ -577,7 +592,7 @@ def best_source_ncc(
     ``kernel`` as there."""
     _validate(depth, normal, pixels, K_train, K_full, grey_ref_full, sources, patch, ncc_gamma)
     _check_kernel(kernel, depth)
-    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma)
+    ref = _reference_patches(depth, normal, pixels, K_train, K_full, grey_ref_full, patch, min_patch_std, ncc_gamma, kernel)
     best = torch.full_like(ref.X[:, 2], float("nan"))
     for src in sources:
         _, _, Xs, front, valid, ncc = _warp_ncc(ref, src, depth, kernel)

@@ -3,8 +3,11 @@ Torch, differentiable, any float dtype; images ``(3, H, W)``.
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from pipeline.losses._blur_kernels import gaussian_blur
 
 SSIM_C1 = 0.01 ** 2
 SSIM_C2 = 0.03 ** 2
@@ -16,14 +19,42 @@ def _gaussian_1d(size: int, sigma: float, like: torch.Tensor) -> torch.Tensor:
     return g / g.sum()
 
 
-def _blur(stack: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+def _blur_torch(stack: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """The separable Gaussian ``g`` over each channel of ``(N, H, W)``, zero padding: two 1-D
-    passes (11x fewer taps than the 2-D convolution). The kernel is symmetric, so this is
-    also its own adjoint."""
+    depthwise convolutions (any device; the reference of :mod:`._blur_kernels`)."""
     n, window = stack.shape[0], g.shape[0]
     pad = window // 2
     out = F.conv2d(stack.unsqueeze(0), g.view(1, 1, 1, -1).expand(n, 1, 1, window), padding=(0, pad), groups=n)
     return F.conv2d(out, g.view(1, 1, -1, 1).expand(n, 1, window, 1), padding=(pad, 0), groups=n)[0]
+
+
+def _blur_numba(stack: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    src = stack.detach().contiguous().numpy()
+    out = np.empty_like(src)
+    gaussian_blur(src, g.detach().numpy(), np.empty_like(src), out)
+    return torch.from_numpy(out)
+
+
+class _Blur(torch.autograd.Function):
+    """:func:`_blur_numba` for autograd: the symmetric zero-padded blur is its own adjoint."""
+
+    @staticmethod
+    def forward(ctx, stack, g):
+        ctx.save_for_backward(g)
+        return _blur_numba(stack, g)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (g,) = ctx.saved_tensors
+        return _blur_numba(grad, g), None
+
+
+def _blur(stack: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The separable Gaussian ``g`` (symmetric) over each channel of ``(N, H, W)``, zero
+    padding: the numba kernel on the CPU, the torch convolutions elsewhere."""
+    if stack.device.type != "cpu" or g.requires_grad:
+        return _blur_torch(stack, g)
+    return _Blur.apply(stack, g) if stack.requires_grad else _blur_numba(stack, g)
 
 
 def _ssim_parts(img1: torch.Tensor, img2: torch.Tensor, g: torch.Tensor):

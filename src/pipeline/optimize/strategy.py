@@ -80,9 +80,9 @@ class DensifyStrategy:
         """Accumulate the statistics of one render (call after ``backward``)."""
         if means2d_grad is None:
             return
-        visible = radii > 0
-        self.state.grad2d[visible] += screen_grad_ndc(means2d_grad, width, height)[visible]
-        self.state.count[visible] += 1
+        visible = radii > 0  # masked sums, not boolean indexing: no nonzero() and gathers per step
+        self.state.grad2d += torch.where(visible, screen_grad_ndc(means2d_grad, width, height), 0.0)
+        self.state.count += visible
         r = radii.to(torch.float64) / max(width, height)
         self.state.max_radii = torch.maximum(self.state.max_radii, torch.where(visible, r, 0.0))
 

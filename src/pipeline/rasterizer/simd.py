@@ -165,44 +165,62 @@ def available() -> tuple[bool, str]:
         return False, str(err)
 
 
-def _runners():
-    """numba functions that run one kernel call per thread on numba's own threads (a second
-    thread pool beside numba's spinning OpenMP threads would fight them for the cores), the
-    calls taking tiles from one shared counter; compiled once per process, since they hold
-    the library's function addresses."""
+class _CFunction(numba.types.WrapperAddressProtocol):
+    """A function of the loaded library as a first-class numba function: its address is an
+    argument of the runners below at call time, so numba caches their compiled code on disk
+    like the other kernels' (compiling them in each process took ~3 s of every training)."""
+
+    def __init__(self, fn, argtypes: list) -> None:
+        numba_type = {_P: numba.types.voidptr, _I: numba.types.int64, _D: numba.types.float64}
+        self._address = ctypes.cast(fn, ctypes.c_void_p).value
+        self._signature = numba.types.void(*[numba_type[a] for a in argtypes])
+
+    def __wrapper_address__(self) -> int:
+        return self._address
+
+    def signature(self):
+        return self._signature
+
+
+def _kernels() -> tuple[_CFunction, _CFunction]:
+    """The library's forward and backward compositing kernels, for the runners."""
     with _lock:
-        if "runners" in _state:
-            return _state["runners"]
+        if "kernels" in _state:
+            return _state["kernels"]  # type: ignore[return-value]
     lib = library()
-    fwd, bwd = lib.simd_forward, lib.simd_backward
-
-    @numba.njit(parallel=True)
-    def forward_all(n_workers, tile_start, tile_order, tile_list, surf, C, Rwc, W, H, n_tx, near, far, depth_eps,
-                    m0, m1, m2, m3, m4, m5, m6, a0, a1, a2, a3, a4, med_local, rec_tile_start,
-                    rec_T, rec_A, rmask, rec_start, rec_count):  # fmt: skip
-        next_tile = np.zeros(1, np.int64)
-        for _ in numba.prange(n_workers):
-            fwd(tile_start.ctypes, tile_order.ctypes, tile_order.shape[0], next_tile.ctypes, tile_list.ctypes,
-                surf.ctypes, surf.shape[1], C, Rwc.ctypes, W, H, n_tx, near, far, depth_eps, m0.ctypes, m1.ctypes, m2.ctypes,
-                m3.ctypes, m4.ctypes, m5.ctypes, m6.ctypes, a0.ctypes, a1.ctypes, a2.ctypes, a3.ctypes, a4.ctypes,
-                med_local.ctypes, rec_tile_start.ctypes, rec_T.ctypes, rec_A.ctypes, rmask.ctypes,
-                rec_start.ctypes, rec_count.ctypes)  # fmt: skip
-
-    @numba.njit(parallel=True)
-    def backward_all(n_workers, tile_start, slot_of_entry, tile_order, tile_list, surf, C, Rwc, W, H, n_tx, near, far,
-                     depth_eps, a0, a1, a2, a3, a4, med_local, rec_T, rec_A, rmask, rec_start, rec_count,
-                     g0, g1, g2, g3, g4, g5, g6, slots):  # fmt: skip
-        next_tile = np.zeros(1, np.int64)
-        for _ in numba.prange(n_workers):
-            bwd(tile_start.ctypes, slot_of_entry.ctypes, tile_order.ctypes, tile_order.shape[0], next_tile.ctypes,
-                tile_list.ctypes, surf.ctypes, surf.shape[1], C, Rwc.ctypes, W, H, n_tx, near, far, depth_eps, a0.ctypes, a1.ctypes,
-                a2.ctypes, a3.ctypes, a4.ctypes, med_local.ctypes, rec_T.ctypes, rec_A.ctypes, rmask.ctypes,
-                rec_start.ctypes, rec_count.ctypes, g0.ctypes, g1.ctypes, g2.ctypes, g3.ctypes, g4.ctypes,
-                g5.ctypes, g6.ctypes, slots.ctypes)  # fmt: skip
-
+    kernels = (_CFunction(lib.simd_forward, _FORWARD_ARGS), _CFunction(lib.simd_backward, _BACKWARD_ARGS))
     with _lock:
-        _state["runners"] = (forward_all, backward_all)
-    return forward_all, backward_all
+        _state["kernels"] = kernels
+    return kernels
+
+
+# The runners make one kernel call per thread on numba's own threads (a second thread pool
+# beside numba's spinning OpenMP threads would fight them for the cores), the calls taking
+# tiles from one shared counter.
+@numba.njit(parallel=True, cache=True)
+def forward_all(fwd, n_workers, tile_start, tile_order, tile_list, surf, C, Rwc, W, H, n_tx, near, far, depth_eps,
+                m0, m1, m2, m3, m4, m5, m6, a0, a1, a2, a3, a4, med_local, rec_tile_start,
+                rec_T, rec_A, rmask, rec_start, rec_count):  # fmt: skip
+    next_tile = np.zeros(1, np.int64)
+    for _ in numba.prange(n_workers):
+        fwd(tile_start.ctypes, tile_order.ctypes, tile_order.shape[0], next_tile.ctypes, tile_list.ctypes,
+            surf.ctypes, surf.shape[1], C, Rwc.ctypes, W, H, n_tx, near, far, depth_eps, m0.ctypes, m1.ctypes, m2.ctypes,
+            m3.ctypes, m4.ctypes, m5.ctypes, m6.ctypes, a0.ctypes, a1.ctypes, a2.ctypes, a3.ctypes, a4.ctypes,
+            med_local.ctypes, rec_tile_start.ctypes, rec_T.ctypes, rec_A.ctypes, rmask.ctypes,
+            rec_start.ctypes, rec_count.ctypes)  # fmt: skip
+
+
+@numba.njit(parallel=True, cache=True)
+def backward_all(bwd, n_workers, tile_start, slot_of_entry, tile_order, tile_list, surf, C, Rwc, W, H, n_tx, near, far,
+                 depth_eps, a0, a1, a2, a3, a4, med_local, rec_T, rec_A, rmask, rec_start, rec_count,
+                 g0, g1, g2, g3, g4, g5, g6, slots):  # fmt: skip
+    next_tile = np.zeros(1, np.int64)
+    for _ in numba.prange(n_workers):
+        bwd(tile_start.ctypes, slot_of_entry.ctypes, tile_order.ctypes, tile_order.shape[0], next_tile.ctypes,
+            tile_list.ctypes, surf.ctypes, surf.shape[1], C, Rwc.ctypes, W, H, n_tx, near, far, depth_eps, a0.ctypes, a1.ctypes,
+            a2.ctypes, a3.ctypes, a4.ctypes, med_local.ctypes, rec_T.ctypes, rec_A.ctypes, rmask.ctypes,
+            rec_start.ctypes, rec_count.ctypes, g0.ctypes, g1.ctypes, g2.ctypes, g3.ctypes, g4.ctypes,
+            g5.ctypes, g6.ctypes, slots.ctypes)  # fmt: skip
 
 
 def _surfel_cols(C: int) -> int:
@@ -341,18 +359,18 @@ class SimdCompositor(cpu.Compositor):
         weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
         *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf = cpu._carve(scratch, specs)
         pack_surfels(geom.geo, geom.Tm, geom.nrm, geom.box, feat, surf)
-        forward_all, _ = _runners()
+        fwd, _ = _kernels()
         forward_all(
-            numba.get_num_threads(), geom.tile_start, geom.worker_tiles, geom.tile_list, surf, C, Rwc, W, H, geom.n_tx, camera.near,
+            fwd, numba.get_num_threads(), geom.tile_start, geom.worker_tiles, geom.tile_list, surf, C, Rwc, W, H, geom.n_tx, camera.near,
             camera.far, depth_eps, *maps, *aux, med_local, geom.rec_tile_start, rec_T, rec_A, rmask, rec_start, rec_count,
         )  # fmt: skip
         return maps, (aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc)
 
     def backward(self, geom, camera, depth_eps, feat, state, grads, slots):
         aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc = state
-        _, backward_all = _runners()
+        _, bwd = _kernels()
         backward_all(
-            numba.get_num_threads(), geom.tile_start, geom.slot_of_entry, geom.worker_tiles, geom.tile_list, surf,
+            bwd, numba.get_num_threads(), geom.tile_start, geom.slot_of_entry, geom.worker_tiles, geom.tile_list, surf,
             feat.shape[1], Rwc, camera.width, camera.height, geom.n_tx, camera.near, camera.far, depth_eps, *aux,
             med_local, rec_T, rec_A, rmask, rec_start, rec_count, *grads, slots,
         )  # fmt: skip
