@@ -119,7 +119,7 @@ def test_bench_train(tmp_path, bundled_scan):
     split = rep["split_s_per_iteration"]
     assert rep["s_per_iteration"] > 0 and rep["surfels"] > 0 and rep["from_iteration"] == 400
     assert split["raster forward kernel"] > 0 and split["torch autograd (loss terms' backward)"] > 0
-    assert split["L_mv's warp and NCC kernels (forward and backward)"] > 0  # L_mv is on at 400
+    assert split["loss kernels (L_mv's patches, warp and NCC; SSIM's blur)"] > 0  # L_mv is on at 400
     assert sum(split.values()) == pytest.approx(rep["s_per_iteration"], rel=0.01, abs=1e-3)
     assert "| raster forward kernel |" in out.with_suffix(".md").read_text()
 

@@ -43,32 +43,53 @@ KERNELS = {
     "raster backward kernels": ("backward", "simd.backward_all", "reduce_and_chain"),
     "raster set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles", "simd.depth_order"),
 }
-MV_KERNELS = "L_mv's warp and NCC kernels (forward and backward)"
+LOSS_KERNELS = "loss kernels (L_mv's patches, warp and NCC; SSIM's blur)"
 AUTOGRAD = "torch autograd (loss terms' backward)"
 LOSS_FORWARD = "loss terms' forward (torch)"
 REST = "rest (optimizer, densification, wrappers, loop)"
-CATEGORIES = list(KERNELS) + [MV_KERNELS, AUTOGRAD, LOSS_FORWARD, REST]
+CATEGORIES = list(KERNELS) + [LOSS_KERNELS, AUTOGRAD, LOSS_FORWARD, REST]
+# The loss terms' numba kernels: (module file, function) -> whether the forward calls it
+# (its time then lies inside the loss terms' cumulative time); the blur serves both passes.
+_LOSS_KERNEL_FUNCS = {
+    ("losses/_mv_kernels.py", "warp_ncc_forward"): True,
+    ("losses/_mv_kernels.py", "patch_moments"): True,
+    ("losses/_mv_kernels.py", "textured_grid"): True,
+    ("losses/_mv_kernels.py", "warp_ncc_backward"): False,
+    ("losses/_blur_kernels.py", "gaussian_blur"): None,
+}
+
+
+def _forward_share_of_blur(stats: pstats.Stats) -> float:
+    """The share of ``photometric._blur``'s time spent under SSIM's forward (its caller
+    ``_ssim_parts``; the rest is SSIM's and the blur's backward)."""
+    for (path, _line, name), (_cc, _nc, _own, cum, callers) in stats.stats.items():
+        if path.replace(os.sep, "/").endswith("losses/photometric.py") and name == "_blur" and cum > 0:
+            fwd = sum(c[3] for (cpath, _l, cname), c in callers.items() if cname == "_ssim_parts")
+            return min(fwd / cum, 1.0)
+    return 0.0
 
 
 def split_profile(stats: pstats.Stats, total_s: float) -> dict[str, float]:
     """Seconds per category of a cProfile run of training steps lasting ``total_s``: the
     kernels' and the autograd engine's own time, the loss terms' cumulative time (their
-    torch calls included, L_mv's forward kernel not), and the rest."""
+    torch calls included, the loss kernels they call not), and the rest."""
     out = dict.fromkeys(CATEGORIES, 0.0)
     own = kernel_seconds(stats)
     for category, funcs in KERNELS.items():
         out[category] = sum(own[f] for f in funcs)
-    mv_forward = 0.0
+    in_forward = 0.0
+    blur_forward = _forward_share_of_blur(stats)
     for (path, _line, name), (_cc, _nc, own_s, cum, _callers) in stats.stats.items():
         path = path.replace(os.sep, "/")
         if name == "<method 'run_backward' of 'torch._C._EngineBase' objects>":
             out[AUTOGRAD] += own_s
         if path.endswith("optimize/train.py") and name == "loss_terms":
             out[LOSS_FORWARD] += cum
-        if path.endswith("losses/_mv_kernels.py") and name in ("warp_ncc_forward", "warp_ncc_backward"):
-            out[MV_KERNELS] += own_s
-            mv_forward += own_s if name == "warp_ncc_forward" else 0.0
-    out[LOSS_FORWARD] = max(out[LOSS_FORWARD] - mv_forward, 0.0)
+        for (suffix, func), forward in _LOSS_KERNEL_FUNCS.items():
+            if path.endswith(suffix) and name == func:
+                out[LOSS_KERNELS] += own_s
+                in_forward += own_s * (blur_forward if forward is None else float(forward))
+    out[LOSS_FORWARD] = max(out[LOSS_FORWARD] - in_forward, 0.0)
     out[REST] = max(total_s - sum(v for k, v in out.items() if k != REST), 0.0)
     return out
 
@@ -91,8 +112,8 @@ def bench_training(scene_dir: str | Path, init_dir: str | Path, priors_dir: str 
         trainer.step()
     trainer.it = max(at, trainer.it)
     # The steps after the jump build what the late terms keep per view (L_mv's textured-pixel
-    # masks: 0.35 s a view at 800x600, once per run): the rest of the view epoch and a whole
-    # one, so every view's are built before the timed steps.
+    # masks, once per view and size): the rest of the view epoch and a whole one, so every
+    # view's are built before the timed steps.
     for _ in range(len(trainer.queue) + views.num_views):
         trainer.step()
     profiler = cProfile.Profile()
