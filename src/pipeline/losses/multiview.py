@@ -227,7 +227,7 @@ def _patch_moments(grey_ref: torch.Tensor, pix: torch.Tensor, sx: float, sy: flo
     ``a_c`` (M, P), variance ``var_a`` (M,) and support ``weight`` (M, P) or ``None``. They
     depend on the image alone, not on the rendered surface, and carry no gradient.
     ``kernel`` as :func:`_warp_ncc`'s (``fused``: :func:`_mv_kernels.patch_moments`)."""
-    if not (kernel == "torch" or (kernel == "auto" and grey_ref.device.type != "cpu")):
+    if _fused(kernel, grey_ref):
         g, q = grey_ref.detach().contiguous().numpy(), pix.detach().to(grey_ref.dtype).contiguous().numpy()
         M, P = q.shape[0], patch * patch
         ref_pos, inside = np.empty((M, P, 2), g.dtype), np.empty(M, np.bool_)
@@ -268,12 +268,13 @@ def textured_pixels(grey_ref_full: torch.Tensor, h: int, w: int, patch: int, min
     pixels where :func:`multiview_consistency` can have a valid pair. The same moments it
     computes (in ``dtype``, the rendered depth's), so sampling L_mv's points among these
     pixels drops only pairs that would have been invalid. Depends on the image alone: compute
-    it once per view and training size. ``kernel`` as :func:`multiview_consistency`'s."""
+    it once per view and training size. ``kernel`` as :func:`multiview_consistency`'s;
+    ``chunk``: pixels per pass of the torch composition (the kernel needs no chunks)."""
     _check_reference(grey_ref_full, patch)
     _check_kernel(kernel, grey_ref_full)
     H, W = grey_ref_full.shape
     grey = grey_ref_full.to(dtype).detach()
-    if not (kernel == "torch" or (kernel == "auto" and grey.device.type != "cpu")):
+    if _fused(kernel, grey):
         out = np.empty((h, w), np.bool_)
         _mv_kernels.textured_grid(grey.contiguous().numpy(), h, w, patch, float(ncc_gamma), float(min_patch_std), out)
         return torch.from_numpy(out)
@@ -389,12 +390,18 @@ def _check_kernel(kernel: str, like: torch.Tensor) -> None:
                          f"for {like.device.type} tensors")
 
 
+def _fused(kernel: str, like: torch.Tensor) -> bool:
+    """Whether ``kernel`` (checked by :func:`_check_kernel`) runs the numba kernels for
+    tensors like ``like``: ``fused``, or ``auto`` on the CPU."""
+    return kernel == "fused" or (kernel == "auto" and like.device.type == "cpu")
+
+
 def _warp_ncc(ref: _ReferencePatches, src: SourceView, like: torch.Tensor, kernel: str):
     """The reference patches warped into ``src`` and their NCC there: ``(R, t, Xs, front,
     valid, ncc)`` as :func:`_warp_into` and :func:`_ncc` give them. ``kernel``: ``torch``
     composes them in torch (the reference; any device), ``fused`` runs the numba kernels
     (CPU), ``auto`` the fused ones on CPU tensors."""
-    if kernel == "torch" or (kernel == "auto" and like.device.type != "cpu"):
+    if not _fused(kernel, like):
         R, t, pos, Xs, front, valid = _warp_into(ref, src, like)
         return R, t, Xs, front, valid, _ncc(ref, _as(src.grey_full, like).detach(), pos, valid)
     T = _as(src.ref_to_src, like)
