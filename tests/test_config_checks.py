@@ -104,6 +104,8 @@ def test_wrong_type_is_named(cls, key, field, value, message):
 
 @pytest.mark.parametrize("cls, key, field, value, message", [
     (OptimizeConfig, "optimize", "iterations", 0, "optimize.iterations must be >= 1, got 0"),
+    (OptimizeConfig, "optimize", "adam_betas", [0.9, 1.0], r"optimize.adam_betas must be \[beta1, beta2\], each in \[0, 1\), got \[0.9, 1.0\]"),
+    (OptimizeConfig, "optimize", "adam_betas", [0.9], r"optimize.adam_betas must be \[beta1, beta2\], each in \[0, 1\), got \[0.9\]"),
     (OptimizeConfig, "optimize", "seed", -1, "optimize.seed must be >= 0, got -1"),
     (OptimizeConfig, "optimize", "scene_extent", 0.0, "optimize.scene_extent must be > 0, got 0.0"),
     (OptimizeConfig, "optimize", "background", 1.5, r"optimize.background must be in \[0, 1\], got 1.5"),

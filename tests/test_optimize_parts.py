@@ -96,7 +96,7 @@ def test_ply_has_2dgs_layout_and_round_trips(tmp_path):
 
 def test_ops_keep_adam_moments_aligned():
     params, _, _ = _params(n=10)
-    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()}, (0.9, 0.999))
     loss = sum((v * torch.arange(1, v.numel() + 1, dtype=v.dtype).view_as(v)).sum() for v in params.tensors().values())
     loss.backward()
     opt.step()
@@ -131,7 +131,7 @@ def test_strategy_clones_small_splits_large_and_respects_budget():
     with torch.no_grad():
         params.log_scales[:3] = math.log(0.001)  # small -> clone
         params.log_scales[3:] = math.log(0.05)  # large -> split
-    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()}, (0.9, 0.999))
     st = DensifyStrategy(DensifyConfig.default(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0,
                                                max_surfels=100))
     st.initialize(params.num)
@@ -153,7 +153,7 @@ def test_strategy_clones_small_splits_large_and_respects_budget():
 
 def test_strategy_prunes_transparent_but_never_everything():
     params, _, _ = _params(n=5)
-    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()}, (0.9, 0.999))
     with torch.no_grad():
         params.opacity_logits[:] = -10.0
     st = DensifyStrategy(DensifyConfig.default(start_iter=0, stop_iter=100, every=10, reset_every=0))
@@ -309,7 +309,7 @@ def test_split_factor_sets_the_children_scale():
 
     rng = np.random.default_rng(0)
     params = init_params(rng.normal(size=(4, 3)), None, np.full((4, 3), 0.5), 0, 0.5, rng)
-    opt = ops.make_optimizer(params, {k: 1e-3 for k in params.tensors()})
+    opt = ops.make_optimizer(params, {k: 1e-3 for k in params.tensors()}, (0.9, 0.999))
     parent = torch.exp(params.log_scales[1].detach()).clone()
     state = DensifyState.zeros(4)
     ops.split(params, opt, state, torch.tensor([False, True, False, False]), 2.5, torch.Generator().manual_seed(0))

@@ -129,7 +129,7 @@ def test_densification_never_grows_outside_and_prunes_what_lies_there():
     with torch.no_grad():
         params.log_scales[:] = math.log(0.001)  # small: cloned
         params.log_scales[4] = math.log(0.2)  # large, at the border: its children land on both sides
-    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()})
+    opt = ops.make_optimizer(params, {k: 0.01 for k in params.tensors()}, (0.9, 0.999))
     st = DensifyStrategy(DensifyConfig.default(start_iter=0, stop_iter=100, every=10, grad_threshold=1e-3, reset_every=0,
                                                max_surfels=100, prune_opacity=0.0), region=_HalfSpace())
     st.initialize(params.num)

@@ -166,6 +166,21 @@ def test_exploding_learning_rates_remove_degenerate_surfels(problem):
         _run(scene, cloud, priors, wild, loss)
 
 
+def test_adam_takes_the_configured_betas_and_they_change_the_run(problem, tmp_path):
+    scene, cloud, priors = problem
+    cfg, loss = tiny_config(iterations=8, checkpoint_every=4)
+    slow = replace(cfg, adam_betas=[0.98, 0.9998])
+    trainer = Trainer(init_from_cloud(cloud, scene, slow), make_views(scene, priors, slow, loss), slow, loss)
+    assert {tuple(g["betas"]) for g in trainer.optimizer.param_groups} == {(0.98, 0.9998)}
+    a, b = _run(scene, cloud, priors, cfg, loss), _run(scene, cloud, priors, slow, loss)
+    assert not torch.equal(a.params.means, b.params.means)
+    # A resumed run keeps them (the optimizer is rebuilt from the config, then its state loaded).
+    ckpt = tmp_path / "ckpt.pt"
+    _run(scene, cloud, priors, slow, loss, checkpoint=ckpt, stop_after=5)
+    resumed = _run(scene, cloud, priors, slow, loss, checkpoint=ckpt)
+    assert resumed.resumed_from == 4 and torch.equal(resumed.params.means, b.params.means)
+
+
 @pytest.mark.parametrize("factor", [1000.0, 0.001])
 def test_scene_scale_does_not_change_the_normalised_result(problem, factor):
     scene, cloud, priors = problem

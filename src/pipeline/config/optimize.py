@@ -202,6 +202,9 @@ class OptimizeConfig(FromConf):
     near: float  # distortion depth mapping, normalised units (2DGS: 0.2, 100)
     far: float
     checkpoint_every: int  # 0: no checkpoints
+    # Adam's (beta1, beta2): its moments average over about 1 / (1 - beta) steps, so a run
+    # stretched to k times the steps at 1 / k the learning rates keeps their span with (1 - beta) / k.
+    adam_betas: list[float]
     lr: LearningRates
     densify: DensifyConfig
     start: TermStarts
@@ -229,6 +232,9 @@ class OptimizeConfig(FromConf):
             raise ConfigError(f"optimize.downscale must be [[fraction in 0..1, factor >= 1], ...], got {self.downscale}")
         if sorted(d[0] for d in self.downscale) != [d[0] for d in self.downscale] or self.downscale[0][0] != 0:
             raise ConfigError(f"optimize.downscale must start at fraction 0 and be sorted, got {self.downscale}")
+        if len(self.adam_betas) != 2 or not all(isinstance(b, (int, float)) and not isinstance(b, bool) and 0 <= b < 1
+                                                for b in self.adam_betas):
+            raise ConfigError(f"optimize.adam_betas must be [beta1, beta2], each in [0, 1), got {self.adam_betas}")
         if not 0 < self.init_opacity < 1 or not 0 <= self.surface_alpha < 1 or not 0 < self.near < self.far:
             raise ConfigError("optimize: init_opacity in (0, 1), surface_alpha in [0, 1) and 0 < near < far required")
 

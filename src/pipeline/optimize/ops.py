@@ -19,10 +19,12 @@ if TYPE_CHECKING:
     from pipeline.optimize.strategy import DensifyState
 
 
-def make_optimizer(params: SurfelParams, lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
-    """Adam with one group per parameter (named), learning rates from ``lrs``."""
+def make_optimizer(params: SurfelParams, lrs: dict[str, float], betas: tuple[float, float],
+                   eps: float = 1e-15) -> torch.optim.Adam:
+    """Adam with one group per parameter (named), learning rates from ``lrs``, moments' decay
+    ``betas`` (``optimize.adam_betas``)."""
     groups = [{"params": [getattr(params, k)], "lr": lrs[k], "name": k} for k in PARAM_NAMES]
-    return torch.optim.Adam(groups, lr=0.0, eps=eps, fused=True)  # one pass per tensor (CPU kernel)
+    return torch.optim.Adam(groups, lr=0.0, betas=betas, eps=eps, fused=True)  # one pass per tensor (CPU kernel)
 
 
 def _swap(params: SurfelParams, optimizer: torch.optim.Optimizer,

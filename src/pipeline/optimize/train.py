@@ -121,7 +121,7 @@ class Trainer:
         self.params = params
         self.num_init = params.num
         self.fingerprint = _fingerprint(cfg, loss, params, views)
-        self.optimizer = ops.make_optimizer(params, _lrs(cfg))
+        self.optimizer = ops.make_optimizer(params, _lrs(cfg), tuple(cfg.adam_betas))
         masks = views.training_masks()
         self.region = region_from_views(views.scene, masks, cfg)
         self.budget = surfel_budget(views.scene, masks, cfg)
@@ -161,7 +161,7 @@ class Trainer:
         if state["fingerprint"] != self.fingerprint:
             raise ValueError("checkpoint belongs to another configuration or input")
         self.params.replace({k: v.clone().requires_grad_(True) for k, v in state["params"].items()})
-        self.optimizer = ops.make_optimizer(self.params, _lrs(self.cfg))
+        self.optimizer = ops.make_optimizer(self.params, _lrs(self.cfg), tuple(self.cfg.adam_betas))
         self.optimizer.load_state_dict(state["optimizer"])
         self.strategy.state = DensifyState(**state["strategy"])
         self.generator.set_state(state["generator"])
