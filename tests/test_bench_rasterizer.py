@@ -1,6 +1,8 @@
 """Smoke test of ``gcgs bench-raster``'s measuring and reporting on a tiny case."""
 from __future__ import annotations
 
+import pytest
+
 from pipeline.benchmarks import rasterizer as bench
 
 
@@ -26,3 +28,18 @@ def test_bench_skips_a_reference_case_over_the_memory_budget():
     assert "skipped" in rec and "forward_s" not in rec
     assert "Reference cases skipped" in bench._markdown([rec], {"machine": "m", "numba_threads": 1, "torch_threads": 1,
                                                                 "threading_layer": "omp", "compile_s": 0.0, "from_cache": False})
+
+
+def test_the_auto_target_is_judged_on_the_simd_record_of_its_case(monkeypatch):
+    """The issue-59 line reads the simd record (timed through ``auto``) of the 800x600 / 200k
+    case, met or missed against the threshold; measured on a tiny case standing in for it."""
+    W, H, N = 64, 48, 400
+    monkeypatch.setattr(bench, "ISSUE20_CASE", (W, H, N))
+    rec = bench._bench_case(W, H, N, "simd", repeats=2, budget_gb=1.0)
+    if "skipped" in rec:
+        pytest.skip(rec["skipped"])
+    meta = {"machine": "m", "numba_threads": 1, "torch_threads": 1, "threading_layer": "omp", "compile_s": 0.0, "from_cache": True}
+    for threshold, verdict in ((rec["total_s"] + 1.0, "met"), (rec["total_s"] / 2, "missed")):
+        monkeypatch.setattr(bench, "ISSUE59_SECONDS", threshold)
+        md = bench._markdown([rec], meta)
+        assert f"through `auto` <= {threshold} s: **{verdict}** ({rec['total_s']} s" in md

@@ -127,3 +127,22 @@ def test_bench_train(tmp_path, bundled_scan):
 def test_bench_train_refuses_a_missing_scene(tmp_path):
     with pytest.raises(FileNotFoundError, match="not found"):
         cli.main(["bench-train", "--scene", str(tmp_path / "nope"), "--out", str(tmp_path / "t.json")])
+
+
+@pytest.mark.parametrize("argv, report, work", [
+    (["bench-raster", "--quick"], "rasterizer_quick.json", ("pipeline.benchmarks.rasterizer", "_bench_case")),
+    (["bench-eval"], "evaluation.md", ("pipeline.benchmarks.evaluation", "uv_sphere")),
+    (["bench-train", "--scene", "nope", "--init-dir", "nope"], "training.md", ("pipeline.benchmarks.training", "load_params")),
+])
+def test_a_bench_refuses_a_foreign_report_before_its_work(tmp_path, monkeypatch, capsys, argv, report, work):
+    """A report path holding a file gcgs did not write is refused at the start: minutes of
+    timing are not run only to fail at the write (as bench-raster once did, after 8 minutes)."""
+    import importlib
+
+    module, name = work
+    monkeypatch.setattr(importlib.import_module(module), name, lambda *a, **k: pytest.fail("the work started"))
+    (tmp_path / report).write_text("someone's notes\n")
+    out = ["--out", str(tmp_path / "training.json")] if argv[0] == "bench-train" else ["--out-dir", str(tmp_path)]
+    assert cli.main([*argv, *out]) != 0
+    assert "was not written by gcgs" in capsys.readouterr().err
+    assert (tmp_path / report).read_text() == "someone's notes\n"

@@ -37,6 +37,9 @@ CAM = dict(K=np.array([[10.0, 0, 5], [0, 10.0, 5], [0, 0, 1]]), world_to_cam=np.
         ("features", torch.tensor([[0, float("inf"), 0]] * 3, dtype=torch.float64), "non-finite"),
         ("scales", torch.tensor([[0.1, -0.1]] * 3, dtype=torch.float64), "scales must be > 0"),
         ("opacities", torch.tensor([0.5, 1.5, 0.5], dtype=torch.float64), "opacities must lie in"),
+        ("opacities", torch.tensor([0.5, -1e-9, 0.5], dtype=torch.float64), "opacities must lie in"),
+        ("opacities", torch.tensor([0.5, float("nan"), 0.5], dtype=torch.float64), "non-finite"),
+        ("scales", torch.tensor([[0.1, 0.1], [float("-inf"), 0.1], [0.1, 0.1]], dtype=torch.float64), "non-finite"),
         ("quats", torch.tensor([[0.0, 0, 0, 0]] * 3, dtype=torch.float64), "zero quaternion"),
         ("means", torch.zeros(3, 3, dtype=torch.float32), "all fields must be"),
         ("means", torch.zeros(3, 3, dtype=torch.int64), "float32 or float64"),
@@ -46,6 +49,18 @@ def test_bad_surfels_raise(field, value, message):
     kw = good()
     kw[field] = value
     with pytest.raises(ValueError, match=message):
+        Surfels(**kw)
+
+
+def test_finite_values_whose_sum_overflows_are_accepted():
+    """The finiteness check sums first; an overflowing sum of finite values is not an error."""
+    kw = good(dtype=torch.float32)
+    kw["means"] = torch.tensor([[3e38, 0, 3.0]] * 3, dtype=torch.float32)
+    kw["features"] = torch.full((3, 3), 3e38, dtype=torch.float32)
+    assert not torch.isfinite(kw["means"].sum())
+    Surfels(**kw)
+    kw["features"][1, 2] = float("nan")
+    with pytest.raises(ValueError, match="features has non-finite"):
         Surfels(**kw)
 
 

@@ -107,6 +107,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out_dir = Path(args.out_dir)
+    for name in ("evaluation.json", "evaluation.md"):  # refused now, not after the runs
+        atomic.check_output_file(out_dir / name)
     runs = []
     with tempfile.TemporaryDirectory(prefix="bench_eval_") as tmp:
         tmp = Path(tmp)

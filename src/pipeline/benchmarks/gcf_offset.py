@@ -109,6 +109,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if not args.delta_step > 0:
         raise ValueError(f"--delta-step must be > 0 mm, got {args.delta_step}")
+    atomic.check_output_file(Path(args.out) / "gcf_vs_depth_offset.json")  # refused now, not after the curves
     deltas = np.round(np.arange(-10.0, 10.0 + 1e-9, args.delta_step), 6)
     t0 = time.perf_counter()
     cams = Path(args.cameras)

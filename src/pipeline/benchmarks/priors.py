@@ -86,6 +86,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.repeats < 1:
         raise ValueError(f"--repeats must be >= 1, got {args.repeats}")
+    atomic.check_output_file(args.out)  # refused now, not after the runs
     for path in (Path(args.scene), Path(args.init_dir)):
         if not path.is_dir():
             raise FileNotFoundError(f"{path}: not found (run `dvc repro init@scan24`, or pass --scene/--init-dir)")

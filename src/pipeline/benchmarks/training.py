@@ -158,6 +158,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pipeline.config.variants import variant_training
 
+    for out in (Path(args.out), Path(args.out).with_suffix(".md")):  # refused now, not after the training
+        atomic.check_output_file(out)
     for path in (Path(args.scene), Path(args.init_dir)):
         if not path.is_dir():
             raise FileNotFoundError(f"{path}: not found (run `dvc repro`, or pass --scene/--init-dir)")

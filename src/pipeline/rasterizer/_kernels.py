@@ -48,6 +48,7 @@ from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, T_MIN, UV_MAX
 TILE_SHIFT = 4
 TILE = 1 << TILE_SHIFT  # a tile's local pixel index (py - y0) * TILE + px - x0 fits the 8 low bits of R_FLAGS
 _CHUNK = 256  # surfels per prange iteration of the per-surfel kernels (scratch arrays allocated once)
+_BIN_PARTS = 8  # parts of the depth order that bin_tiles counts and fills in parallel (any count gives the same lists)
 
 # Per-surfel geometry (float64) computed by ``preprocess``.
 GEO_AX = 0  # 3: T_v x T_w  (q = x AX + y AY + A0)
@@ -262,21 +263,36 @@ def bin_tiles(front_to_back, box, n_tx, n_ty):
         tiles[k, 2], tiles[k, 3] = box[s, 2] // TILE, box[s, 3] // TILE
         per_surfel[s + 1] = (tiles[k, 1] - tiles[k, 0] + 1) * (tiles[k, 3] - tiles[k, 2] + 1)
     emit_start = np.cumsum(per_surfel)
-    counts = np.zeros(n_tiles + 1, np.int64)
-    for k in range(n):
-        for ty in range(tiles[k, 2], tiles[k, 3] + 1):
-            for tx in range(tiles[k, 0], tiles[k, 1] + 1):
-                counts[ty * n_tx + tx + 1] += 1
-    tile_start = np.cumsum(counts)
-    fill = tile_start[:-1].copy()
+    # Counted and filled in parallel over contiguous parts of the front-to-back order: part
+    # ``b`` writes its entries of tile ``t`` after those of the parts before it, so each
+    # tile's list is in front-to-back order as a sequential fill would leave it.
+    n_parts = _BIN_PARTS
+    part_len = -(-n // n_parts)
+    part_counts = np.zeros((n_parts, n_tiles), np.int64)
+    for b in prange(n_parts):
+        for k in range(b * part_len, min(n, (b + 1) * part_len)):
+            for ty in range(tiles[k, 2], tiles[k, 3] + 1):
+                for tx in range(tiles[k, 0], tiles[k, 1] + 1):
+                    part_counts[b, ty * n_tx + tx] += 1
+    tile_start = np.zeros(n_tiles + 1, np.int64)
+    for t in range(n_tiles):
+        total = 0
+        for b in range(n_parts):
+            total += part_counts[b, t]
+        tile_start[t + 1] = tile_start[t] + total
     tile_list = np.empty(tile_start[-1], np.int32)
-    for k in range(n):
-        s = front_to_back[k]
-        for ty in range(tiles[k, 2], tiles[k, 3] + 1):
-            for tx in range(tiles[k, 0], tiles[k, 1] + 1):
-                t = ty * n_tx + tx
-                tile_list[fill[t]] = s
-                fill[t] += 1
+    for b in prange(n_parts):
+        fill = tile_start[:-1].copy()
+        for t in range(n_tiles):
+            for earlier in range(b):
+                fill[t] += part_counts[earlier, t]
+        for k in range(b * part_len, min(n, (b + 1) * part_len)):
+            s = front_to_back[k]
+            for ty in range(tiles[k, 2], tiles[k, 3] + 1):
+                for tx in range(tiles[k, 0], tiles[k, 1] + 1):
+                    t = ty * n_tx + tx
+                    tile_list[fill[t]] = s
+                    fill[t] += 1
     slot_of_entry = np.empty(tile_start[-1], np.int64)
     capacity = np.zeros(n_tiles + 1, np.int64)
     for t in prange(n_tiles):

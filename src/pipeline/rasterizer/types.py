@@ -16,8 +16,14 @@ FLOAT_DTYPES = (torch.float32, torch.float64)
 
 
 def _finite(name: str, t: Tensor) -> None:
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} has non-finite values (NaN or Inf)")
+    # A finite sum proves every value finite (a NaN or an Inf makes the sum NaN or Inf) in
+    # one pass without a mask: 0.1 ms instead of 1-2 ms for 200k surfels, every render.
+    # Only a sum that is not finite (possibly an overflow of finite values) needs the mask.
+    with torch.no_grad():
+        if t.numel() and bool(torch.isfinite(t.sum())):
+            return
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"{name} has non-finite values (NaN or Inf)")
 
 
 @dataclass(frozen=True)
@@ -87,12 +93,16 @@ class Surfels:
                 )
         for name, t in fields.items():
             _finite(f"surfels.{name}", t)
-        if P and bool((self.scales <= 0).any()):
-            raise ValueError("surfels.scales must be > 0 (pass activated scales)")
-        if P and bool(((self.opacities < 0) | (self.opacities > 1)).any()):
-            raise ValueError("surfels.opacities must lie in [0, 1] (pass activated opacities)")
-        if P and bool((self.quats.norm(dim=1) == 0).any()):
-            raise ValueError("surfels.quats has a zero quaternion (no rotation)")
+        if not P:
+            return
+        with torch.no_grad():  # reductions rather than masks: one pass each, no allocation
+            if bool(self.scales.min() <= 0):
+                raise ValueError("surfels.scales must be > 0 (pass activated scales)")
+            lo, hi = torch.aminmax(self.opacities)
+            if bool(lo < 0) or bool(hi > 1):
+                raise ValueError("surfels.opacities must lie in [0, 1] (pass activated opacities)")
+            if bool(self.quats.norm(dim=1).min() == 0):
+                raise ValueError("surfels.quats has a zero quaternion (no rotation)")
 
     @property
     def num_surfels(self) -> int:
