@@ -284,7 +284,6 @@ def _markdown(records: list[dict], meta: dict) -> str:
                       f"**{'met' if secs <= ISSUE20_SECONDS else 'missed'}** (best: {name}, {secs} s)."]  # fmt: skip
         auto = case.get("simd", {})
         if "total_s" in auto:
-            W, H, N = ISSUE20_CASE
             lines += ["", f"Issue 59's target, the same case through `auto` <= {ISSUE59_SECONDS} s: "
                       f"**{'met' if auto['total_s'] <= ISSUE59_SECONDS else 'missed'}** ({auto['total_s']} s, best "
                       f"{auto['best_total_s']} s; {auto['total_s'] / auto['cpu_alternated_total_s']:.2f}x the numba "
