@@ -204,6 +204,27 @@ def test_ssim_closed_form_gradient_matches_autograd_at_training_size():
     torch.testing.assert_close(x1.grad, x2.grad, rtol=1e-4, atol=1e-5 * float(x2.grad.abs().max()))
 
 
+@pytest.mark.parametrize("shape", [(3, 150, 200), (1, 7, 9), (3, 11, 4), (2, 1, 1)])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_ssim_kernels_are_the_torch_expressions_bit_for_bit(shape, dtype, monkeypatch):
+    """The closed-form SSIM's per-pixel kernels (the CPU path) against its torch expressions:
+    the same value and gradient to the last bit."""
+    import pipeline.losses.photometric as photometric
+
+    g = torch.Generator().manual_seed(3)
+    a, b = torch.rand(shape, generator=g, dtype=dtype), torch.rand(shape, generator=g, dtype=dtype)
+    results = []
+    for fused in (True, False):
+        monkeypatch.setattr(photometric, "_fused", lambda *_, f=fused: f)
+        x = a.clone().requires_grad_()
+        loss = ssim(x, b)
+        loss.backward()
+        results.append((loss, x.grad))
+    (l1, g1), (l2, g2) = results
+    assert torch.equal(l1, l2) and torch.equal(g1, g2)
+    assert g1.abs().max() > 0
+
+
 def _blur_slow(a: np.ndarray, window: int = 11, sigma: float = 1.5) -> np.ndarray:
     """Each channel of ``(N, H, W)`` against the explicit 2-D Gaussian window, zero padding."""
     x = np.arange(window) - window // 2

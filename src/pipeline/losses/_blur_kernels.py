@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, prange
 
+_CHUNKS = 64  # row chunks per pass: enough to balance the threads
+
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def gaussian_blur(src, g, tmp, out):
@@ -19,25 +21,32 @@ def gaussian_blur(src, g, tmp, out):
     n, h, w = src.shape
     win = g.shape[0]
     pad = win // 2
-    for r in prange(n * h):
-        c = r // h
-        y = r - c * h
+    rows = n * h
+    # Rows in chunks, each with its own scratch rows: one allocation per chunk, not per row.
+    chunks = min(rows, _CHUNKS)
+    for ch in prange(chunks):
         padded = np.zeros(w + 2 * pad, src.dtype)
-        padded[pad:pad + w] = src[c, y]
-        acc = np.zeros(w, src.dtype)
-        for k in range(win):  # shifted rows: contiguous loops the compiler vectorises
-            gk = g[k]
-            for x in range(w):
-                acc[x] += gk * padded[x + k]
-        tmp[c, y] = acc
-    for r in prange(n * h):
-        c = r // h
-        y = r - c * h
-        acc = np.zeros(w, src.dtype)
-        for k in range(win):
-            yy = y + k - pad
-            if yy >= 0 and yy < h:
+        acc = np.empty(w, src.dtype)
+        for r in range(rows * ch // chunks, rows * (ch + 1) // chunks):
+            c = r // h
+            y = r - c * h
+            padded[pad:pad + w] = src[c, y]
+            acc[:] = 0
+            for k in range(win):  # shifted rows: contiguous loops the compiler vectorises
                 gk = g[k]
                 for x in range(w):
-                    acc[x] += gk * tmp[c, yy, x]
-        out[c, y] = acc
+                    acc[x] += gk * padded[x + k]
+            tmp[c, y] = acc
+    for ch in prange(chunks):
+        for r in range(rows * ch // chunks, rows * (ch + 1) // chunks):
+            c = r // h
+            y = r - c * h
+            acc = out[c, y]
+            acc[:] = 0
+            for k in range(win):
+                yy = y + k - pad
+                if yy >= 0 and yy < h:
+                    gk = g[k]
+                    t = tmp[c, yy]
+                    for x in range(w):
+                        acc[x] += gk * t[x]

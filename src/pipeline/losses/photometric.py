@@ -7,6 +7,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from pipeline.losses import _ssim_kernels
 from pipeline.losses._blur_kernels import gaussian_blur
 
 SSIM_C1 = 0.01 ** 2
@@ -73,12 +74,17 @@ class _SSIMOfFirst(torch.autograd.Function):
     target), with its gradient in closed form. Per pixel the map ``a1 a2 / (b1 b2)`` moves
     with the blurred moments ``mu1``, ``E[x^2]`` and ``E[xy]``; each moment's sensitivity is
     blurred back (the window is its own adjoint) and chained to ``x``: three blurs in place
-    of the convolutions' backward, which costs several times their forward here."""
+    of the convolutions' backward, which costs several times their forward here. On the CPU
+    the per-pixel arithmetic runs in :mod:`._ssim_kernels` (the same operations and results
+    as the torch expressions here, in one pass each)."""
 
     @staticmethod
     def forward(ctx, img1, img2, g):
-        mu1, mu2, a1, a2, b1, b2 = _ssim_parts(img1, img2, g)
-        ssim_map = a1 * a2 / (b1 * b2)
+        if _fused(img1, img2):
+            mu1, mu2, a1, a2, b1, b2, ssim_map = _ssim_parts_fused(img1, img2, g)
+        else:
+            mu1, mu2, a1, a2, b1, b2 = _ssim_parts(img1, img2, g)
+            ssim_map = a1 * a2 / (b1 * b2)
         ctx.save_for_backward(img1, img2, g, mu1, mu2, a1, a2, b1, b2, ssim_map)
         return ssim_map.mean()
 
@@ -86,13 +92,49 @@ class _SSIMOfFirst(torch.autograd.Function):
     def backward(ctx, grad):
         img1, img2, g, mu1, mu2, a1, a2, b1, b2, ssim_map = ctx.saved_tensors
         scale = grad / ssim_map.numel()
+        C = img1.shape[0]
+        if _fused(img1, img2):
+            np_dtype = _np_dtype(img1)
+            two, n = np_dtype.type(2), img1.numel()
+            sens = np.empty(3 * n, np_dtype)
+            _ssim_kernels.sensitivities(*(_flat(t) for t in (mu1, mu2, a1, a2, b1, b2, ssim_map)),
+                                        np_dtype.type(scale.item()), two, sens)
+            blurred = _blur_numba(torch.from_numpy(sens).view(3 * C, *img1.shape[1:]), g).numpy().reshape(-1)
+            out = np.empty(n, np_dtype)
+            _ssim_kernels.chain(blurred, _flat(img1), _flat(img2), two, out)
+            return torch.from_numpy(out).view(img1.shape), None, None
         inv = scale / (b1 * b2)
         d_mu1 = 2 * mu2 * (a2 - a1) * inv - 2 * mu1 * ssim_map * (b2 - b1) * inv
         d_e11 = -ssim_map * scale / b2
         d_e12 = 2 * a1 * inv
-        C = img1.shape[0]
         g_mu1, g_e11, g_e12 = _blur(torch.cat([d_mu1, d_e11, d_e12]), g).split(C)
         return g_mu1 + 2 * img1 * g_e11 + img2 * g_e12, None, None
+
+
+def _fused(img1: torch.Tensor, img2: torch.Tensor) -> bool:
+    return (img1.device.type == "cpu" and img2.device == img1.device and img2.dtype == img1.dtype
+            and img1.dtype in (torch.float32, torch.float64))
+
+
+def _np_dtype(t: torch.Tensor) -> np.dtype:
+    return np.dtype(np.float32 if t.dtype == torch.float32 else np.float64)
+
+
+def _flat(t: torch.Tensor) -> np.ndarray:
+    return t.detach().contiguous().numpy().reshape(-1)
+
+
+def _ssim_parts_fused(img1: torch.Tensor, img2: torch.Tensor, g: torch.Tensor):
+    """:func:`_ssim_parts` and the SSIM map through :mod:`._ssim_kernels` (CPU)."""
+    C, n, np_dtype = img1.shape[0], img1.numel(), _np_dtype(img1)
+    stack = np.empty(5 * n, np_dtype)
+    _ssim_kernels.moments_input(_flat(img1), _flat(img2), stack)
+    blurred = _blur_numba(torch.from_numpy(stack).view(5 * C, *img1.shape[1:]), g).numpy().reshape(-1)
+    a1, a2, b1, b2, ssim_map = (np.empty(n, np_dtype) for _ in range(5))
+    two, c1, c2 = (np_dtype.type(v) for v in (2, SSIM_C1, SSIM_C2))
+    _ssim_kernels.parts(blurred, two, c1, c2, a1, a2, b1, b2, ssim_map)
+    maps = (blurred[:n], blurred[n:2 * n], a1, a2, b1, b2, ssim_map)
+    return tuple(torch.from_numpy(m).view(img1.shape) for m in maps)
 
 
 def ssim(img1: torch.Tensor, img2: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:

@@ -142,6 +142,42 @@ template <int L> inline typename Lanes<L>::F expand_load(const float *src, uint3
     return v;
 }
 
+// Two rows of 8 lanes as one vector of 16 (a row pair): lanes 0-7 the first, 8-15 the second.
+#if defined(__has_builtin) && __has_builtin(__builtin_shufflevector)
+template <class V8, class V16> inline V16 join(V8 a, V8 b) {
+    return __builtin_shufflevector(a, b, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
+}
+template <class V16, class V8> inline V8 half(V16 v, int h) {
+    return h ? __builtin_shufflevector(v, v, 8, 9, 10, 11, 12, 13, 14, 15) : __builtin_shufflevector(v, v, 0, 1, 2, 3, 4, 5, 6, 7);
+}
+#else
+template <class V8, class V16> inline V16 join(V8 a, V8 b) {
+    V16 v;
+    memcpy(&v, &a, sizeof a);
+    memcpy((char *)&v + sizeof a, &b, sizeof b);
+    return v;
+}
+template <class V16, class V8> inline V8 half(V16 v, int h) {
+    V8 a;
+    memcpy(&a, (const char *)&v + h * sizeof a, sizeof a);
+    return a;
+}
+#endif
+// A per-row value on the lanes of a row pair, hidden from the compiler so that it forms
+// the same multiply-adds as with the one row's value (a scalar) on 8 lanes.
+inline vf rows_value(float a, float b) {
+    vf v = join<vf8, vf>(splat<vf8>(a), splat<vf8>(b));
+#if defined(__AVX512F__)
+    asm("" : "+v"(v));
+#else
+    asm("" : "+m"(v));
+#endif
+    return v;
+}
+
+// An unaligned store of a vector of 8 lanes.
+template <class T, class V> inline void store8(T *dst, V v) { memcpy(dst, &v, sizeof v); }
+
 // Sum of 8 doubles in a fixed order.
 inline double hsum8(vd s8) {
 #if defined(__AVX512F__)
@@ -251,101 +287,189 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
             const int64_t by0 = (int64_t)e[E_BOX + 2], by1 = (int64_t)e[E_BOX + 3];
             const int64_t xa = bx0 > tb.x0 ? bx0 : tb.x0, xb = bx1 < tb.x1 - 1 ? bx1 : tb.x1 - 1;
             const int64_t ya = by0 > tb.y0 ? by0 : tb.y0, yb = by1 < tb.y1 - 1 ? by1 : tb.y1 - 1;
-            // The entry's rows on L lanes starting at tile column ``off``.
-            auto rows = [&](auto width, int64_t off) {
+            // One step of the entry's rows: tile row ``py`` on L lanes from tile column ``off``,
+            // or (P) the row pair py, py + 1 on 8 lanes each from ``off``, as one vector of 16:
+            // per lane the same operations, so the same results, in half the steps.
+            auto step = [&](auto width, auto paired, int64_t off, int64_t py) {
                 constexpr int L = decltype(width)::value;
+                constexpr bool P = decltype(paired)::value;
                 typedef typename Lanes<L>::F F;
                 typedef typename Lanes<L>::I I;
-                const F x = lane_index<L>() + (float)(tb.x0 + off);
-                const I in_box = (x >= (float)xa) & (x <= (float)xb);
-                for (int64_t py = ya; py <= yb; py++) {
-                    const float y = (float)py, dy = y - cy, dy2 = dy * dy;
-                    const float qr0 = y * ay0 + a00, qr1 = y * ay1 + a01, qr2 = y * ay2 + a02;
-                    const int64_t row = (py - tb.y0) * TILE + off;
-                    uint16_t *rm = rmask + (j * TILE + (py - tb.y0)) * RM_SIZE;
-                    rm[RM_PAIR] = rm[RM_USE3] = rm[RM_CAP] = 0;
-                    const I dn = *(const I *)(done + row);
-                    I m = in_box & ~dn;
-                    const F q0 = x * ax0 + qr0, q1 = x * ax1 + qr1, q2 = x * ax2 + qr2;
-                    const F dx = x - cx;
-                    const F rho2 = 2.0f * (dx * dx + dy2);
-                    const I in3 = (vabs(q2) * UV_MAX > vmax(vabs(q0), vabs(q1))) & (q0 * q0 + q1 * q1 <= rho_max * (q2 * q2));
-                    m &= in3 | (rho2 <= rho_max);
-                    if (!bits(m)) continue;
-                    const F inv = in3 ? 1.0f / (in3 ? q2 : 1.0f) : 0.0f;
-                    const F u = q0 * inv, v = q1 * inv, r3 = u * u + v * v;
-                    const I use3 = in3 & (r3 <= rho2);
-                    const F rho = use3 ? r3 : rho2;
-                    const F z = use3 ? det * inv : zc;
-                    const F iz = use3 ? q2 * inv_det : inv_zc;
-                    m &= (rho <= rho_max) & (z >= nearf);
-                    if (!bits(m)) continue;
-                    const F a_raw = o * vexp<L>(-0.5f * vmin(rho, splat<F>(170.0f)));
-                    const F a = vmin(splat<F>(ALPHA_MAX), a_raw);
-                    m &= a >= ALPHA_MIN;
-                    const F T = *(const F *)(Tr + row);
-                    const F Tn = T * (1.0f - a);
-                    const I stop = m & (Tn < T_MIN);
-                    if (uint32_t sb = bits(stop)) {
-                        *(I *)(done + row) = dn | stop;
-                        n_done += __builtin_popcount(sb);
-                        m &= ~stop;
-                    }
-                    const uint32_t mb = bits(m);
-                    if (!mb) continue;
-                    const F w = m ? a * T : 0.0f;
-                    for (int c = 0; c < C; c++) *(F *)(Fe[c] + row) += w * fs[c];
-                    *(F *)(Nn[0] + row) += w * n0;
-                    *(F *)(Nn[1] + row) += w * n1;
-                    *(F *)(Nn[2] + row) += w * n2;
-                    *(F *)(D + row) += w * z;
-                    const F mm = mscale * (1.0f - nearf * iz);
-                    if constexpr (L == 16) {
-                        vd wl[2], ml[2];
-                        widen(w, wl[0], wl[1]);
-                        widen(mm, ml[0], ml[1]);
-                        for (int h = 0; h < 2; h++) {
-                            const vd wm = wl[h] * ml[h];
-                            *(vd *)(Ws + row + 8 * h) += wl[h];
-                            *(vd *)(M1 + row + 8 * h) += wm;
-                            *(vd *)(M2 + row + 8 * h) += wm * ml[h];
-                        }
+                typedef typename Lanes<P ? 8 : L>::F Fr;  // one row's lanes
+                typedef typename Lanes<P ? 8 : L>::I Ir;
+                const int64_t row = (py - tb.y0) * TILE + off;
+                auto ld = [&](const auto *p) {
+                    typedef std::conditional_t<std::is_same_v<std::remove_cv_t<std::remove_pointer_t<decltype(p)>>, float>, F, I> V;
+                    typedef std::conditional_t<std::is_same_v<V, F>, Fr, Ir> Vr;
+                    if constexpr (P) return join<Vr, V>(*(const Vr *)p, *(const Vr *)(p + TILE));
+                    else return *(const V *)p;
+                };
+                auto st = [&](auto *p, auto v) {
+                    typedef std::conditional_t<std::is_same_v<decltype(v), F>, Fr, Ir> Vr;
+                    if constexpr (P) {
+                        *(Vr *)p = half<decltype(v), Vr>(v, 0);
+                        *(Vr *)(p + TILE) = half<decltype(v), Vr>(v, 1);
                     } else {
-                        const vd wl = __builtin_convertvector(w, vd), ml = __builtin_convertvector(mm, vd);
-                        const vd wm = wl * ml;
-                        *(vd *)(Ws + row) += wl;
-                        *(vd *)(M1 + row) += wm;
-                        *(vd *)(M2 + row) += wm * ml;
+                        *(decltype(v) *)p = v;
                     }
-                    const I md = m & (T > 0.5f);
-                    *(F *)(med + row) = md ? z : *(const F *)(med + row);
-                    *(I *)(medi + row) = md ? (int32_t)(j - start) : *(const I *)(medi + row);
-                    *(F *)(Tr + row) = m ? Tn : T;
-                    compress_store(rec_T + r, mb, T);
-                    compress_store(rec_A + r, mb, a);
-                    r += __builtin_popcount(mb);
-                    rm[RM_PAIR] = (uint16_t)(mb << off);
-                    rm[RM_USE3] = (uint16_t)((bits(use3) & mb) << off);
-                    rm[RM_CAP] = (uint16_t)((bits(a_raw >= ALPHA_MAX) & mb) << off);
+                };
+                // A per-row value on the step's lanes.
+                auto per_row = [&](float a, float b) {
+                    if constexpr (P) return rows_value(a, b);
+                    else return splat<F>(a);
+                };
+                const Fr xr = lane_index<P ? 8 : L>() + (float)(tb.x0 + off);
+                const Ir in_box_r = (xr >= (float)xa) & (xr <= (float)xb);
+                F x;
+                I in_box;
+                if constexpr (P) {
+                    x = join<Fr, F>(xr, xr);
+                    in_box = join<Ir, I>(in_box_r, in_box_r);
+                } else {
+                    x = xr;
+                    in_box = in_box_r;
                 }
+                uint16_t *rm = rmask + (j * TILE + (py - tb.y0)) * RM_SIZE;
+                rm[RM_PAIR] = rm[RM_USE3] = rm[RM_CAP] = 0;
+                if constexpr (P) rm[RM_SIZE + RM_PAIR] = rm[RM_SIZE + RM_USE3] = rm[RM_SIZE + RM_CAP] = 0;
+                // The lanes of ``b`` into the rows' masks.
+                auto set_rows = [&](int field, uint32_t b) {
+                    if constexpr (P) {
+                        rm[field] = (uint16_t)((b & 0xffu) << off);
+                        rm[RM_SIZE + field] = (uint16_t)((b >> 8) << off);
+                    } else {
+                        rm[field] = (uint16_t)(b << off);
+                    }
+                };
+                const float y0 = (float)py, y1 = (float)(py + P);
+                const float dy0 = y0 - cy, dy1 = y1 - cy;
+                const F dy2 = per_row(dy0 * dy0, dy1 * dy1);
+                const F qr0 = per_row(y0 * ay0 + a00, y1 * ay0 + a00);
+                const F qr1 = per_row(y0 * ay1 + a01, y1 * ay1 + a01);
+                const F qr2 = per_row(y0 * ay2 + a02, y1 * ay2 + a02);
+                const I dn = ld(done + row);
+                I m = in_box & ~dn;
+                const F q0 = x * ax0 + qr0, q1 = x * ax1 + qr1, q2 = x * ax2 + qr2;
+                const F dx = x - cx;
+                const F rho2 = 2.0f * (dx * dx + dy2);
+                const I in3 = (vabs(q2) * UV_MAX > vmax(vabs(q0), vabs(q1))) & (q0 * q0 + q1 * q1 <= rho_max * (q2 * q2));
+                m &= in3 | (rho2 <= rho_max);
+                if (!bits(m)) return;
+                const F inv = in3 ? 1.0f / (in3 ? q2 : 1.0f) : 0.0f;
+                const F u = q0 * inv, v = q1 * inv, r3 = u * u + v * v;
+                const I use3 = in3 & (r3 <= rho2);
+                const F rho = use3 ? r3 : rho2;
+                const F z = use3 ? det * inv : zc;
+                const F iz = use3 ? q2 * inv_det : inv_zc;
+                m &= (rho <= rho_max) & (z >= nearf);
+                if (!bits(m)) return;
+                const F a_raw = o * vexp<L>(-0.5f * vmin(rho, splat<F>(170.0f)));
+                const F a = vmin(splat<F>(ALPHA_MAX), a_raw);
+                m &= a >= ALPHA_MIN;
+                const F T = ld(Tr + row);
+                const F Tn = T * (1.0f - a);
+                const I stop = m & (Tn < T_MIN);
+                if (uint32_t sb = bits(stop)) {
+                    st(done + row, dn | stop);
+                    n_done += __builtin_popcount(sb);
+                    m &= ~stop;
+                }
+                const uint32_t mb = bits(m);
+                if (!mb) return;
+                const F w = m ? a * T : 0.0f;
+                for (int c = 0; c < C; c++) st(Fe[c] + row, ld(Fe[c] + row) + w * fs[c]);
+                st(Nn[0] + row, ld(Nn[0] + row) + w * n0);
+                st(Nn[1] + row, ld(Nn[1] + row) + w * n1);
+                st(Nn[2] + row, ld(Nn[2] + row) + w * n2);
+                st(D + row, ld(D + row) + w * z);
+                const F mm = mscale * (1.0f - nearf * iz);
+                if constexpr (L == 16) {
+                    vd wl[2], ml[2];
+                    widen(w, wl[0], wl[1]);
+                    widen(mm, ml[0], ml[1]);
+                    for (int h = 0; h < 2; h++) {
+                        const int64_t at = row + (P ? TILE : 8) * h;
+                        const vd wm = wl[h] * ml[h];
+                        *(vd *)(Ws + at) += wl[h];
+                        *(vd *)(M1 + at) += wm;
+                        *(vd *)(M2 + at) += wm * ml[h];
+                    }
+                } else {
+                    const vd wl = __builtin_convertvector(w, vd), ml = __builtin_convertvector(mm, vd);
+                    const vd wm = wl * ml;
+                    *(vd *)(Ws + row) += wl;
+                    *(vd *)(M1 + row) += wm;
+                    *(vd *)(M2 + row) += wm * ml;
+                }
+                const I md = m & (T > 0.5f);
+                st(med + row, md ? z : ld(med + row));
+                st(medi + row, md ? (int32_t)(j - start) : ld(medi + row));
+                st(Tr + row, m ? Tn : T);
+                compress_store(rec_T + r, mb, T);
+                compress_store(rec_A + r, mb, a);
+                r += __builtin_popcount(mb);
+                set_rows(RM_PAIR, mb);
+                set_rows(RM_USE3, bits(use3) & mb);
+                set_rows(RM_CAP, bits(a_raw >= ALPHA_MAX) & mb);
+            };
+            // An entry whose box lies in one half of the tile takes its rows in pairs.
+            auto half_rows = [&](int64_t off) {
+                int64_t py = ya;
+                for (; py + 1 <= yb; py += 2) step(Width<16>{}, std::true_type{}, off, py);
+                if (py <= yb) step(Width<8>{}, std::false_type{}, off, py);
             };
             if (xb - tb.x0 < 8)
-                rows(Width<8>{}, 0);
+                half_rows(0);
             else if (xa - tb.x0 >= 8)
-                rows(Width<8>{}, 8);
+                half_rows(8);
             else
-                rows(Width<16>{}, 0);
+                for (int64_t py = ya; py <= yb; py++) step(Width<16>{}, std::false_type{}, 0, py);
             rec_count[j] = r - rec_start[j];
         }
-        for (int64_t py = tb.y0; py < tb.y1; py++)
-            for (int64_t px = tb.x0; px < tb.x1; px++) {
-                const int64_t p = (py - tb.y0) * TILE + px - tb.x0, o = py * width + px;
+        for (int64_t py = tb.y0; py < tb.y1; py++) {
+            const int64_t p0 = (py - tb.y0) * TILE, o0 = py * width + tb.x0;
+            int64_t px = tb.x0;
+            // The per-pixel maps of a whole tile row, 8 pixels at a time in float64: the same
+            // operations as the pixel loop below.
+            alignas(32) float nw[3][TILE];
+            if (tb.x1 - tb.x0 == TILE)
+                for (int h = 0; h < TILE; h += 8) {
+                    const int64_t p = p0 + h, o = o0 + h;
+                    const vd tr = __builtin_convertvector(*(const vf8 *)(Tr + p), vd);
+                    const vd dd = __builtin_convertvector(*(const vf8 *)(D + p), vd);
+                    const vd ws = *(const vd *)(Ws + p), m1 = *(const vd *)(M1 + p), m2 = *(const vd *)(M2 + p);
+                    const vd A = 1.0 - tr;
+                    const vd dist = ws * m2 - m1 * m1;
+                    store8(out_alpha + o, __builtin_convertvector(A, vf8));
+                    store8(out_depth + o, __builtin_convertvector(dd / (A + depth_eps), vf8));
+                    store8(out_med + o, *(const vf8 *)(med + p));
+                    store8(out_dist + o, __builtin_convertvector(dist > 0.0 ? dist : 0.0, vf8));
+                    store8(aux_T + o, tr);
+                    store8(aux_D + o, dd);
+                    store8(aux_W + o, ws);
+                    store8(aux_M1 + o, m1);
+                    store8(aux_M2 + o, m2);
+                    store8(med_local + o, *(const vi8 *)(medi + p));
+                    const vd n0 = __builtin_convertvector(*(const vf8 *)(Nn[0] + p), vd);
+                    const vd n1 = __builtin_convertvector(*(const vf8 *)(Nn[1] + p), vd);
+                    const vd n2 = __builtin_convertvector(*(const vf8 *)(Nn[2] + p), vd);
+                    // n_world = R_wc^T n_cam
+                    for (int k = 0; k < 3; k++)
+                        *(vf8 *)(nw[k] + h) = __builtin_convertvector(Rwc[k] * n0 + Rwc[3 + k] * n1 + Rwc[6 + k] * n2, vf8);
+                }
+            for (int64_t i = 0; i < tb.x1 - tb.x0; i++) {
+                const int64_t p = p0 + i, o = o0 + i;
                 for (int c = 0; c < C; c++) out_feat[o * C + c] = Fe[c][p];
-                for (int k = 0; k < 3; k++) {
-                    out_ncam[o * 3 + k] = Nn[k][p];
+                for (int k = 0; k < 3; k++) out_ncam[o * 3 + k] = Nn[k][p];
+                if (tb.x1 - tb.x0 == TILE)
+                    for (int k = 0; k < 3; k++) out_nworld[o * 3 + k] = nw[k][i];
+            }
+            if (tb.x1 - tb.x0 == TILE) continue;
+            for (; px < tb.x1; px++) {
+                const int64_t p = p0 + px - tb.x0, o = py * width + px;
+                for (int k = 0; k < 3; k++)
                     // n_world = R_wc^T n_cam
                     out_nworld[o * 3 + k] = (float)(Rwc[k] * Nn[0][p] + Rwc[3 + k] * Nn[1][p] + Rwc[6 + k] * Nn[2][p]);
-                }
                 const double A = 1.0 - (double)Tr[p];
                 out_alpha[o] = (float)A;
                 out_depth[o] = (float)(D[p] / (A + depth_eps));
@@ -359,6 +483,7 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                 aux_M2[o] = M2[p];
                 med_local[o] = medi[p];
             }
+        }
     }
 }
 

@@ -47,7 +47,7 @@ SOURCE = Path(__file__).with_name("_simd.cpp")
 FLAGS = ("-O3", "-march=native", "-ffp-contract=fast", "-fPIC", "-shared", "-std=c++17")
 MAX_CHANNELS = 8  # MAXC in _simd.cpp
 RMASK_FIELDS = 3  # RM_SIZE in _simd.cpp
-RECORD_SLACK = 16  # the kernel stores 16 lanes at the last record
+RECORD_SLACK = 16  # the kernels store 16 lanes at a tile's last record
 
 _P = ctypes.c_void_p
 _I = ctypes.c_int64
@@ -325,6 +325,10 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = K.bin_tiles(depth_order(depth, radii), box, n_tx, n_ty)
     cost = np.diff(rec_tile_start).astype(np.float64) + cpu._ENTRY_COST * np.diff(tile_start)
     tile_order = np.argsort(-cost, kind="stable")
+    # Room for a whole vector behind each tile's records: the kernels store 16 lanes at a
+    # tile's last record, which, in a tile whose pairs fill its region, overwrote the first
+    # records of the next tile when that one had been rendered first.
+    rec_tile_start = rec_tile_start + RECORD_SLACK * np.arange(rec_tile_start.shape[0])
     return cpu.Geometry(
         Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
         np.array([0, tile_order.shape[0]]), tile_order, n_tx,
@@ -353,7 +357,7 @@ class SimdCompositor(cpu.Compositor):
         maps += [np.empty((H, W, 3), f32), np.empty((H, W, 3), f32), np.empty((H, W), f32)]
         n_rec, n_pairs = int(geom.rec_tile_start[-1]), geom.num_pairs
         specs = [((H, W), np.float64)] * 5 + [((H, W), np.int32)]
-        specs += [((n_rec + RECORD_SLACK,), f32)] * 2 + [((n_pairs * K.TILE * RMASK_FIELDS,), np.uint16)]
+        specs += [((n_rec,), f32)] * 2 + [((n_pairs * K.TILE * RMASK_FIELDS,), np.uint16)]
         specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((geom.Tm.shape[0], _surfel_cols(C)), f32)]
         scratch = cpu.SCRATCH.take("simd-forward", cpu._carve_bytes(specs))
         weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
