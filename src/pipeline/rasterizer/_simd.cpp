@@ -17,7 +17,7 @@
 #include <string.h>
 
 #include <type_traits>
-#if defined(__AVX512F__)
+#if defined(__AVX2__) || defined(__AVX512F__)
 #include <immintrin.h>
 #endif
 
@@ -41,9 +41,9 @@ constexpr float ALPHA_MIN = 1.0f / 255.0f, ALPHA_MAX = 0.99f, T_MIN = 1e-4f, UV_
 typedef float vf __attribute__((vector_size(64)));
 typedef int32_t vi __attribute__((vector_size(64)));
 typedef double vd __attribute__((vector_size(64)));
-// Half a tile row: an entry whose box lies in one 8-pixel half of the tile (69% of the box rows
-// at 800x600 / 200k surfels) is evaluated on 8 lanes, half the work on CPUs that split 512-bit
-// operations. The operations per lane are the same, but the compiler may fuse multiply-adds
+// Half a tile row: an entry at most 8 pixels wide in its tile (83% of the box rows at 800x600 /
+// 200k surfels) is evaluated on the 8 columns from ``window_column``'s, half the work on CPUs
+// that split 512-bit operations. The operations per lane are the same, but the compiler may fuse multiply-adds
 // differently at the two widths (with -ffp-contract=off the results are bitwise those of 16
 // lanes), so they can differ in the last bits; the width depends only on the entry's box.
 typedef float vf8 __attribute__((vector_size(32)));
@@ -65,6 +65,13 @@ template <> inline vf lane_index<16>() { return (vf){0, 1, 2, 3, 4, 5, 6, 7, 8, 
 template <> inline vf8 lane_index<8>() { return (vf8){0, 1, 2, 3, 4, 5, 6, 7}; }
 
 template <class F> inline F splat(float a) { return (F){} + a; }
+// A vector from / to any address of its lane type: an entry's lanes start at any tile column.
+template <class V, class T> inline V loadu(const T *src) {
+    V v;
+    memcpy(&v, src, sizeof v);
+    return v;
+}
+template <class T, class V> inline void storeu(T *dst, V v) { memcpy(dst, &v, sizeof v); }
 template <class F> inline F vmax(F a, F b) { return a > b ? a : b; }
 template <class F> inline F vmin(F a, F b) { return a < b ? a : b; }
 template <class F> inline F vabs(F a) { return a < 0 ? -a : a; }
@@ -163,6 +170,32 @@ template <class V16, class V8> inline V8 half(V16 v, int h) {
     return a;
 }
 #endif
+template <class V> struct Half;
+template <> struct Half<vf> {
+    typedef vf8 type;
+};
+template <> struct Half<vi> {
+    typedef vi8 type;
+};
+// A step's lanes of a tile plane from ``p``: one row, or (P) 8 lanes of a row and the 8 below.
+template <class V, bool P, class T> inline V load_rows(const T *p) {
+    if constexpr (P) {
+        typedef typename Half<V>::type H;
+        return join<H, V>(loadu<H>(p), loadu<H>(p + TILE));
+    } else {
+        return loadu<V>(p);
+    }
+}
+template <bool P, class T, class V> inline void store_rows(T *p, V v) {
+    if constexpr (P) {
+        typedef typename Half<V>::type H;
+        storeu(p, half<V, H>(v, 0));
+        storeu(p + TILE, half<V, H>(v, 1));
+    } else {
+        storeu(p, v);
+    }
+}
+
 // A per-row value on the lanes of a row pair, hidden from the compiler so that it forms
 // the same multiply-adds as with the one row's value (a scalar) on 8 lanes.
 inline vf rows_value(float a, float b) {
@@ -174,9 +207,6 @@ inline vf rows_value(float a, float b) {
 #endif
     return v;
 }
-
-// An unaligned store of a vector of 8 lanes.
-template <class T, class V> inline void store8(T *dst, V v) { memcpy(dst, &v, sizeof v); }
 
 // Sum of 8 doubles in a fixed order.
 inline double hsum8(vd s8) {
@@ -198,7 +228,19 @@ inline double hsum(vf a) {
     widen(a, lo, hi);
     return hsum8(lo + hi);
 }
-inline double hsum(vf8 a) { return hsum8(__builtin_convertvector(a, vd)); }
+// The lanes of a window of 8 at tile column ``off``, summed as hsum sums the 16 of the tile row
+// with zeros outside the window: the window holds each column k or k + 8 once, lane (k - off) mod 8.
+inline double hsum(vf8 a, int64_t off) {
+#if defined(__AVX2__)
+    const __m256i rot = _mm256_and_si256(_mm256_sub_epi32(_mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7), _mm256_set1_epi32((int)off)), _mm256_set1_epi32(7));
+    a = (vf8)_mm256_permutevar8x32_ps((__m256)a, rot);
+#else
+    vf8 r;
+    for (int k = 0; k < 8; k++) r[k] = a[(k - off) & 7];
+    a = r;
+#endif
+    return hsum8(__builtin_convertvector(a, vd));
+}
 
 // exp(x) for x <= 0 in float32: x = k ln2 + r, |r| <= ln2 / 2, Cephes' degree-7 polynomial, 2^k
 // through the exponent bits; within 2 ulp of expf on [-87, 0] (tested).
@@ -225,6 +267,14 @@ template <int L> inline typename Lanes<L>::F vexp(typename Lanes<L>::F x) {
 struct Tile {
     int64_t x0, y0, x1, y1;
 };
+
+// The first of the 8 tile columns on which an entry spanning tile columns ``a``..``b`` is
+// evaluated (0 or 8 when it lies in one half), -1 when it is wider than 8: the forward and the
+// backward must choose alike.
+inline int64_t window_column(int64_t a, int64_t b) {
+    if (b - a >= 8) return -1;
+    return b < 8 ? 0 : a < 8 ? a : 8;
+}
 
 inline Tile tile_bounds(int64_t t, int64_t n_tx, int64_t width, int64_t height) {
     int64_t ty = t / n_tx, x0 = (t - ty * n_tx) * TILE, y0 = ty * TILE;
@@ -289,8 +339,9 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
             const int64_t ya = by0 > tb.y0 ? by0 : tb.y0, yb = by1 < tb.y1 - 1 ? by1 : tb.y1 - 1;
             // One step of the entry's rows: tile row ``py`` on L lanes from tile column ``off``,
             // or (P) the row pair py, py + 1 on 8 lanes each from ``off``, as one vector of 16:
-            // per lane the same operations, so the same results, in half the steps.
-            auto step = [&](auto width, auto paired, int64_t off, int64_t py) {
+            // per lane the same operations, so the same results, in half the steps. ``xr`` and
+            // ``in_box_r``: the pixels' x and whether they are in the box, on one row's lanes.
+            auto step = [&](auto width, auto paired, int64_t off, int64_t py, auto xr, auto in_box_r) {
                 constexpr int L = decltype(width)::value;
                 constexpr bool P = decltype(paired)::value;
                 typedef typename Lanes<L>::F F;
@@ -298,28 +349,11 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                 typedef typename Lanes<P ? 8 : L>::F Fr;  // one row's lanes
                 typedef typename Lanes<P ? 8 : L>::I Ir;
                 const int64_t row = (py - tb.y0) * TILE + off;
-                auto ld = [&](const auto *p) {
-                    typedef std::conditional_t<std::is_same_v<std::remove_cv_t<std::remove_pointer_t<decltype(p)>>, float>, F, I> V;
-                    typedef std::conditional_t<std::is_same_v<V, F>, Fr, Ir> Vr;
-                    if constexpr (P) return join<Vr, V>(*(const Vr *)p, *(const Vr *)(p + TILE));
-                    else return *(const V *)p;
-                };
-                auto st = [&](auto *p, auto v) {
-                    typedef std::conditional_t<std::is_same_v<decltype(v), F>, Fr, Ir> Vr;
-                    if constexpr (P) {
-                        *(Vr *)p = half<decltype(v), Vr>(v, 0);
-                        *(Vr *)(p + TILE) = half<decltype(v), Vr>(v, 1);
-                    } else {
-                        *(decltype(v) *)p = v;
-                    }
-                };
                 // A per-row value on the step's lanes.
                 auto per_row = [&](float a, float b) {
                     if constexpr (P) return rows_value(a, b);
                     else return splat<F>(a);
                 };
-                const Fr xr = lane_index<P ? 8 : L>() + (float)(tb.x0 + off);
-                const Ir in_box_r = (xr >= (float)xa) & (xr <= (float)xb);
                 F x;
                 I in_box;
                 if constexpr (P) {
@@ -347,7 +381,7 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                 const F qr0 = per_row(y0 * ay0 + a00, y1 * ay0 + a00);
                 const F qr1 = per_row(y0 * ay1 + a01, y1 * ay1 + a01);
                 const F qr2 = per_row(y0 * ay2 + a02, y1 * ay2 + a02);
-                const I dn = ld(done + row);
+                const I dn = load_rows<I, P>(done + row);
                 I m = in_box & ~dn;
                 const F q0 = x * ax0 + qr0, q1 = x * ax1 + qr1, q2 = x * ax2 + qr2;
                 const F dx = x - cx;
@@ -366,22 +400,22 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                 const F a_raw = o * vexp<L>(-0.5f * vmin(rho, splat<F>(170.0f)));
                 const F a = vmin(splat<F>(ALPHA_MAX), a_raw);
                 m &= a >= ALPHA_MIN;
-                const F T = ld(Tr + row);
+                const F T = load_rows<F, P>(Tr + row);
                 const F Tn = T * (1.0f - a);
                 const I stop = m & (Tn < T_MIN);
                 if (uint32_t sb = bits(stop)) {
-                    st(done + row, dn | stop);
+                    store_rows<P>(done + row, dn | stop);
                     n_done += __builtin_popcount(sb);
                     m &= ~stop;
                 }
                 const uint32_t mb = bits(m);
                 if (!mb) return;
                 const F w = m ? a * T : 0.0f;
-                for (int c = 0; c < C; c++) st(Fe[c] + row, ld(Fe[c] + row) + w * fs[c]);
-                st(Nn[0] + row, ld(Nn[0] + row) + w * n0);
-                st(Nn[1] + row, ld(Nn[1] + row) + w * n1);
-                st(Nn[2] + row, ld(Nn[2] + row) + w * n2);
-                st(D + row, ld(D + row) + w * z);
+                for (int c = 0; c < C; c++) store_rows<P>(Fe[c] + row, load_rows<F, P>(Fe[c] + row) + w * fs[c]);
+                store_rows<P>(Nn[0] + row, load_rows<F, P>(Nn[0] + row) + w * n0);
+                store_rows<P>(Nn[1] + row, load_rows<F, P>(Nn[1] + row) + w * n1);
+                store_rows<P>(Nn[2] + row, load_rows<F, P>(Nn[2] + row) + w * n2);
+                store_rows<P>(D + row, load_rows<F, P>(D + row) + w * z);
                 const F mm = mscale * (1.0f - nearf * iz);
                 if constexpr (L == 16) {
                     vd wl[2], ml[2];
@@ -390,21 +424,21 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                     for (int h = 0; h < 2; h++) {
                         const int64_t at = row + (P ? TILE : 8) * h;
                         const vd wm = wl[h] * ml[h];
-                        *(vd *)(Ws + at) += wl[h];
-                        *(vd *)(M1 + at) += wm;
-                        *(vd *)(M2 + at) += wm * ml[h];
+                        storeu(Ws + at, loadu<vd>(Ws + at) + wl[h]);
+                        storeu(M1 + at, loadu<vd>(M1 + at) + wm);
+                        storeu(M2 + at, loadu<vd>(M2 + at) + wm * ml[h]);
                     }
                 } else {
                     const vd wl = __builtin_convertvector(w, vd), ml = __builtin_convertvector(mm, vd);
                     const vd wm = wl * ml;
-                    *(vd *)(Ws + row) += wl;
-                    *(vd *)(M1 + row) += wm;
-                    *(vd *)(M2 + row) += wm * ml;
+                    storeu(Ws + row, loadu<vd>(Ws + row) + wl);
+                    storeu(M1 + row, loadu<vd>(M1 + row) + wm);
+                    storeu(M2 + row, loadu<vd>(M2 + row) + wm * ml);
                 }
                 const I md = m & (T > 0.5f);
-                st(med + row, md ? z : ld(med + row));
-                st(medi + row, md ? (int32_t)(j - start) : ld(medi + row));
-                st(Tr + row, m ? Tn : T);
+                store_rows<P>(med + row, md ? z : load_rows<F, P>(med + row));
+                store_rows<P>(medi + row, md ? (int32_t)(j - start) : load_rows<I, P>(medi + row));
+                store_rows<P>(Tr + row, m ? Tn : T);
                 compress_store(rec_T + r, mb, T);
                 compress_store(rec_A + r, mb, a);
                 r += __builtin_popcount(mb);
@@ -412,23 +446,24 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                 set_rows(RM_USE3, bits(use3) & mb);
                 set_rows(RM_CAP, bits(a_raw >= ALPHA_MAX) & mb);
             };
-            // An entry whose box lies in one half of the tile takes its rows in pairs.
-            auto half_rows = [&](int64_t off) {
+            // An entry at most 8 pixels wide in this tile (83% of the box rows at 800x600 / 200k
+            // surfels) takes its rows in pairs, on the 8 columns from window_column's.
+            const int64_t off = window_column(xa - tb.x0, xb - tb.x0);
+            if (off >= 0) {
+                const vf8 xr = lane_index<8>() + (float)(tb.x0 + off);
+                const vi8 in_box_r = (xr >= (float)xa) & (xr <= (float)xb);
                 int64_t py = ya;
-                for (; py + 1 <= yb; py += 2) step(Width<16>{}, std::true_type{}, off, py);
-                if (py <= yb) step(Width<8>{}, std::false_type{}, off, py);
-            };
-            if (xb - tb.x0 < 8)
-                half_rows(0);
-            else if (xa - tb.x0 >= 8)
-                half_rows(8);
-            else
-                for (int64_t py = ya; py <= yb; py++) step(Width<16>{}, std::false_type{}, 0, py);
+                for (; py + 1 <= yb; py += 2) step(Width<16>{}, std::true_type{}, off, py, xr, in_box_r);
+                if (py <= yb) step(Width<8>{}, std::false_type{}, off, py, xr, in_box_r);
+            } else {
+                const vf xr = lane_index<16>() + (float)tb.x0;
+                const vi in_box_r = (xr >= (float)xa) & (xr <= (float)xb);
+                for (int64_t py = ya; py <= yb; py++) step(Width<16>{}, std::false_type{}, 0, py, xr, in_box_r);
+            }
             rec_count[j] = r - rec_start[j];
         }
         for (int64_t py = tb.y0; py < tb.y1; py++) {
             const int64_t p0 = (py - tb.y0) * TILE, o0 = py * width + tb.x0;
-            int64_t px = tb.x0;
             // The per-pixel maps of a whole tile row, 8 pixels at a time in float64: the same
             // operations as the pixel loop below.
             alignas(32) float nw[3][TILE];
@@ -440,16 +475,16 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                     const vd ws = *(const vd *)(Ws + p), m1 = *(const vd *)(M1 + p), m2 = *(const vd *)(M2 + p);
                     const vd A = 1.0 - tr;
                     const vd dist = ws * m2 - m1 * m1;
-                    store8(out_alpha + o, __builtin_convertvector(A, vf8));
-                    store8(out_depth + o, __builtin_convertvector(dd / (A + depth_eps), vf8));
-                    store8(out_med + o, *(const vf8 *)(med + p));
-                    store8(out_dist + o, __builtin_convertvector(dist > 0.0 ? dist : 0.0, vf8));
-                    store8(aux_T + o, tr);
-                    store8(aux_D + o, dd);
-                    store8(aux_W + o, ws);
-                    store8(aux_M1 + o, m1);
-                    store8(aux_M2 + o, m2);
-                    store8(med_local + o, *(const vi8 *)(medi + p));
+                    storeu(out_alpha + o, __builtin_convertvector(A, vf8));
+                    storeu(out_depth + o, __builtin_convertvector(dd / (A + depth_eps), vf8));
+                    storeu(out_med + o, *(const vf8 *)(med + p));
+                    storeu(out_dist + o, __builtin_convertvector(dist > 0.0 ? dist : 0.0, vf8));
+                    storeu(aux_T + o, tr);
+                    storeu(aux_D + o, dd);
+                    storeu(aux_W + o, ws);
+                    storeu(aux_M1 + o, m1);
+                    storeu(aux_M2 + o, m2);
+                    storeu(med_local + o, *(const vi8 *)(medi + p));
                     const vd n0 = __builtin_convertvector(*(const vf8 *)(Nn[0] + p), vd);
                     const vd n1 = __builtin_convertvector(*(const vf8 *)(Nn[1] + p), vd);
                     const vd n2 = __builtin_convertvector(*(const vf8 *)(Nn[2] + p), vd);
@@ -465,7 +500,7 @@ void forward_tiles(const int64_t *tile_start, const int64_t *tile_order, int64_t
                     for (int k = 0; k < 3; k++) out_nworld[o * 3 + k] = nw[k][i];
             }
             if (tb.x1 - tb.x0 == TILE) continue;
-            for (; px < tb.x1; px++) {
+            for (int64_t px = tb.x0; px < tb.x1; px++) {
                 const int64_t p = p0 + px - tb.x0, o = py * width + px;
                 for (int k = 0; k < 3; k++)
                     // n_world = R_wc^T n_cam
@@ -595,7 +630,7 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
                     const F iz = use3 ? q2 * inv_det : inv_zc;
                     const F w = a * T;
                     const F mm = mscale * (1.0f - nearf * iz);
-#define ROW(f) (*(const F *)(tab + (f) * NPX + row))
+#define ROW(f) loadu<F>(tab + (f) * NPX + row)
                     const F gq0 = ROW(PX_GN0), gq1 = ROW(PX_GN1), gq2 = ROW(PX_GN2);
                     const F gDp = ROW(PX_GD), gdW = ROW(PX_W), gdM1 = ROW(PX_M1);
                     F vsum = ROW(PX_GA) + gDp * (z - ROW(PX_DEXP)) + gq0 * n0 + gq1 * n1 + gq2 * n2;
@@ -608,9 +643,9 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
                     gn0 += gq0 * w;
                     gn1 += gq1 * w;
                     gn2 += gq2 * w;
-                    const F Bp = *(const F *)(B + row);
+                    const F Bp = loadu<F>(B + row);
                     const F dL_da = T * (vsum - Bp);
-                    *(F *)(B + row) = m ? a * vsum + (1.0f - a) * Bp : Bp;
+                    storeu(B + row, m ? a * vsum + (1.0f - a) * Bp : Bp);
                     F dz = gDp * w + 2.0f * w * (mm * gdW - gdM1) * mscale * nearf * iz * iz;
                     dz += (ROW(PX_MED) == li) ? ROW(PX_GMED) : 0.0f;
                     dz = m ? dz : 0.0f;
@@ -635,30 +670,34 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
                     gtw2 += lowpass ? dz : 0.0f;
                 }
                 const F dxc = x - cx;
-                const double s0 = hsum(g0), s1 = hsum(g1), s2 = hsum(g2);
-                sl[S_AX] = hsum(dxc * g0) + (double)cx * s0;
-                sl[S_AX + 1] = hsum(dxc * g1) + (double)cx * s1;
-                sl[S_AX + 2] = hsum(dxc * g2) + (double)cx * s2;
-                sl[S_AY] = hsum(gy0) + (double)cy * s0;
-                sl[S_AY + 1] = hsum(gy1) + (double)cy * s1;
-                sl[S_AY + 2] = hsum(gy2) + (double)cy * s2;
+                // The lanes summed in float64 as the 16 of the tile row would be.
+                auto sum = [&](F v) {
+                    if constexpr (L == 8) return hsum(v, off);
+                    else return hsum(v);
+                };
+                const double s0 = sum(g0), s1 = sum(g1), s2 = sum(g2);
+                sl[S_AX] = sum(dxc * g0) + (double)cx * s0;
+                sl[S_AX + 1] = sum(dxc * g1) + (double)cx * s1;
+                sl[S_AX + 2] = sum(dxc * g2) + (double)cx * s2;
+                sl[S_AY] = sum(gy0) + (double)cy * s0;
+                sl[S_AY + 1] = sum(gy1) + (double)cy * s1;
+                sl[S_AY + 2] = sum(gy2) + (double)cy * s2;
                 sl[S_A0] = s0;
                 sl[S_A0 + 1] = s1;
                 sl[S_A0 + 2] = s2;
-                sl[S_DET] = hsum(gdet);
-                sl[S_CX] = hsum(-4.0f * dxc * gdrho_lp);
-                sl[S_CY] = hsum(gcy);
-                sl[S_TW2] = hsum(gtw2);
-                sl[S_OPACITY] = hsum(gop);
-                sl[S_NORMAL] = hsum(gn0);
-                sl[S_NORMAL + 1] = hsum(gn1);
-                sl[S_NORMAL + 2] = hsum(gn2);
-                for (int c = 0; c < C; c++) sl[S_FEATURE + c] = hsum(gfe[c]);
+                sl[S_DET] = sum(gdet);
+                sl[S_CX] = sum(-4.0f * dxc * gdrho_lp);
+                sl[S_CY] = sum(gcy);
+                sl[S_TW2] = sum(gtw2);
+                sl[S_OPACITY] = sum(gop);
+                sl[S_NORMAL] = sum(gn0);
+                sl[S_NORMAL + 1] = sum(gn1);
+                sl[S_NORMAL + 2] = sum(gn2);
+                for (int c = 0; c < C; c++) sl[S_FEATURE + c] = sum(gfe[c]);
             };
-            if (xb - tb.x0 < 8)
-                pairs(Width<8>{}, 0);
-            else if (xa - tb.x0 >= 8)
-                pairs(Width<8>{}, 8);
+            const int64_t off = window_column(xa - tb.x0, xb - tb.x0);
+            if (off >= 0)
+                pairs(Width<8>{}, off);
             else
                 pairs(Width<16>{}, 0);
         }

@@ -5,8 +5,8 @@ The per-surfel set-up, the tile binning and the per-surfel chain rule are the ``
 backend's numba kernels (with a radix depth sort of their own, :func:`depth_order`, and one
 float32 row per surfel, :func:`pack_surfels`, that the kernels read through the tile lists);
 the forward and backward compositing (~80% of a render at 800x600) are ``_simd.cpp``: a tile
-row of 16 pixels in one vector of float32 lanes, or 8 where an entry's box lies in one half
-of its tile (docs/rasterizer.md, "The simd kernels"). Float32 input only; arithmetic is float32 like
+row of 16 pixels in one vector of float32 lanes, or 8 where an entry's box is at most 8 pixels
+wide in its tile (docs/rasterizer.md, "The simd kernels"). Float32 input only; arithmetic is float32 like
 2DGS's CUDA kernels, so results match the ``cpu`` backend to float32 rounding, not bit for
 bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` for the median,
 ``rho3 <= rho2``) can fall on the other side.
