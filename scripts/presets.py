@@ -4,9 +4,9 @@ each run, and write ``reports/presets.{csv,md,png}`` (docs/presets.md).
 Each run is ``gcgs optimize``, ``gcgs mesh`` and ``gcgs score`` with the preset's params
 (``conf/optimize/PRESET.yaml`` composed as ``gcgs params optimize=PRESET`` would, the seed
 set) on the DVC outputs of the scene (``--inputs``: scenes/, init/, priors/). Runs whose
-metrics exist are kept (the ladder resumes); the report is rewritten after each run. ``--jobs``
-runs at once, each on ``--threads`` threads (GCGS_THREADS), cheapest preset first, so that the
-ladder's lower steps land first. Every row records the commit it ran on; the code must be
+metrics exist at this commit are kept (the ladder resumes); the report is rewritten after each
+run. ``--jobs`` runs at once, each on ``--threads`` threads (GCGS_THREADS), cheapest preset
+first, so that the ladder's lower steps land first. Every row records the commit it ran on; the code must be
 committed (a dirty ``src/`` or ``conf/`` is refused).
 
     python scripts/presets.py [--presets quick fast ...] [--seeds 0 1 2] [--jobs 2] [--inputs data]
@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import shutil
 import subprocess
 import sys
 import threading
@@ -62,7 +63,10 @@ def run_one(preset: str, scene: str, seed: int, params: dict, inputs: Path, work
     cell = work / preset / scene / f"seed{seed}"
     row_file = cell / "row.json"
     if row_file.is_file():
-        return json.loads(row_file.read_text())
+        row = json.loads(row_file.read_text())
+        if row["commit"] == commit:
+            return row
+        shutil.rmtree(cell)  # a run of other code must not land in this commit's ladder
     cell.mkdir(parents=True, exist_ok=True)
     params = {**params, "optimize": {**params["optimize"], "seed": seed}}
     (cell / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
