@@ -11,7 +11,7 @@ ROOT = Path(__file__).resolve().parents[1] / "src" / "pipeline"
 # Lowest first; a package may import from any earlier layer.
 LAYERS = [
     {"errors", "npz", "measure", "losses"},
-    {"threads"},
+    {"threads", "heap"},
     {"config", "geometry", "atomic", "jsonfile", "onnx_models", "rasterizer"},
     {"ply", "curves", "raycast"},
     {"surfels"},

@@ -8,6 +8,7 @@ import importlib
 import sys
 
 from pipeline.errors import InputError, Interrupted
+from pipeline.heap import keep_freed_memory
 from pipeline.threads import configure_threads
 
 # name -> (module, one-line help)
@@ -66,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.command not in NO_THREADS:
             configure_threads()
+            keep_freed_memory()
         return int(module.run(args) or 0)
     except InputError as exc:
         # Bad input (SceneError, CameraError, ConfigError, OutputError ...) names the file and

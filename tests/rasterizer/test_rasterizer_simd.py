@@ -149,7 +149,7 @@ def test_entries_at_most_8_wide_across_the_middle_of_a_tile():
     sums a window's lanes in the order of the tile row's 16. Scenes with all three kinds."""
     for seed in range(3):
         cam = random_camera(48, 32, seed)
-        s = random_surfels(120, cam, 3, seed, torch.float32, scale=(0.01, 0.15))
+        s = random_surfels(160, cam, 3, seed, torch.float32, scale=(0.01, 0.2))
         first, last = _entry_spans(s, cam)
         narrow = last - first < 8
         straddling = narrow & (first < 8) & (last >= 8)

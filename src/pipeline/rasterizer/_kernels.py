@@ -43,7 +43,7 @@ import math
 import numpy as np
 from numba import njit, prange
 
-from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, T_MIN, UV_MAX
+from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, RHO_CUT_MAX, T_MIN, UV_MAX
 
 TILE_SHIFT = 4
 TILE = 1 << TILE_SHIFT  # a tile's local pixel index (py - y0) * TILE + px - x0 fits the 8 low bits of R_FLAGS
@@ -57,7 +57,7 @@ GEO_A0 = 6  # 3: T_u x T_v
 GEO_DET = 9  # det T
 GEO_CX = 10  # projected centre (pixels)
 GEO_CY = 11
-GEO_RHO_MAX = 12  # 2 ln(255 o), with rounding slack
+GEO_RHO_MAX = 12  # min(2 ln(255 o), 9), with rounding slack
 GEO_OPACITY = 13
 GEO_INV_DET = 14  # 1 / det T (z = det / q2, so 1 / z = q2 / det)
 GEO_INV_ZC = 15  # 1 / centre depth (low-pass branch)
@@ -117,10 +117,12 @@ def _cross(a0, a1, a2, b0, b1, b2):
 
 
 @njit(parallel=True, cache=True, error_model="numpy")
-def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, geo, depth, box, radii):
+def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, geo, depth, box, radii,
+               centre):  # fmt: skip
     """Per surfel: ``Tm`` (P, 9) ray transform ``K [s_u R_c e_u, s_v R_c e_v, p_c]``
     (row-major), ``nrm`` (P, 3) camera-frame normal facing the camera, ``geo``,
-    ``depth`` (centre z), ``box`` (P, 4) support box and ``radii`` (0 = not visible)."""
+    ``depth`` (centre z), ``box`` (P, 4) support box, ``radii`` (0 = not visible) and
+    ``centre`` (P, 2) the projected centre in ``Tm``'s dtype (0 where not drawn)."""
     fx, sk, cx0, fy, cy0 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     big = 4.0 * max(width, height)
     for chunk in prange(-(-means.shape[0] // _CHUNK)):
@@ -162,7 +164,7 @@ def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far
             zc = T[2, 2]
             depth[i] = zc
             o = float(opac[i])
-            rho_cut = 2.0 * math.log(255.0 * o) if o > 0 else -1.0
+            rho_cut = min(2.0 * math.log(255.0 * o), RHO_CUT_MAX) if o > 0 else -1.0
             for c in range(3):
                 geo[i, GEO_AX + c] = ax[c]
                 geo[i, GEO_AY + c] = ay[c]
@@ -178,10 +180,14 @@ def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far
             if not (zc >= near and zc <= far and rho_cut >= 0.0):
                 geo[i, GEO_CX] = 0.0
                 geo[i, GEO_CY] = 0.0
+                centre[i, 0] = 0.0
+                centre[i, 1] = 0.0
                 continue
             pcx, pcy = T[0, 2] / zc, T[1, 2] / zc
             geo[i, GEO_CX] = pcx
             geo[i, GEO_CY] = pcy
+            centre[i, 0] = pcx
+            centre[i, 1] = pcy
             # Support box: image of the disc u^2 + v^2 <= rho_cut through the dual conic
             # T diag(r2, r2, -1) T^T (bounded iff its (2,2) entry < 0), union the low-pass
             # square; see project.support_boxes (the torch twin used by the reference).
@@ -254,33 +260,45 @@ def bin_tiles(front_to_back, box, n_tx, n_ty):
     n_tiles = n_tx * n_ty
     n = front_to_back.shape[0]
     per_surfel = np.zeros(P + 1, np.int64)
-    # Tile ranges in front-to-back order, so the sequential passes below read them in order
-    # (in depth order the ids are scattered: reading ``box[s]`` there missed the cache).
-    tiles = np.empty((n, 4), np.int64)
+    # Tile ranges and pixel boxes in front-to-back order, so the passes below read them in
+    # order (in depth order the ids are scattered: reading ``box[s]`` there missed the cache).
+    tiles = np.empty((n, 4), np.int32)
+    pix = np.empty((n, 4), np.int32)
     for k in prange(n):
         s = front_to_back[k]
-        tiles[k, 0], tiles[k, 1] = box[s, 0] // TILE, box[s, 1] // TILE
-        tiles[k, 2], tiles[k, 3] = box[s, 2] // TILE, box[s, 3] // TILE
+        for c in range(4):
+            pix[k, c] = box[s, c]
+            tiles[k, c] = box[s, c] // TILE
         per_surfel[s + 1] = (tiles[k, 1] - tiles[k, 0] + 1) * (tiles[k, 3] - tiles[k, 2] + 1)
     emit_start = np.cumsum(per_surfel)
     # Counted and filled in parallel over contiguous parts of the front-to-back order: part
     # ``b`` writes its entries of tile ``t`` after those of the parts before it, so each
-    # tile's list is in front-to-back order as a sequential fill would leave it.
+    # tile's list is in front-to-back order as a sequential fill would leave it. The count
+    # also sums each tile's box pixels, the fill writes each entry's gradient slot.
     n_parts = _BIN_PARTS
     part_len = -(-n // n_parts)
     part_counts = np.zeros((n_parts, n_tiles), np.int64)
+    part_pixels = np.zeros((n_parts, n_tiles), np.int64)
     for b in prange(n_parts):
         for k in range(b * part_len, min(n, (b + 1) * part_len)):
             for ty in range(tiles[k, 2], tiles[k, 3] + 1):
+                rows = min(pix[k, 3], ty * TILE + TILE - 1) - max(pix[k, 2], ty * TILE) + 1
                 for tx in range(tiles[k, 0], tiles[k, 1] + 1):
-                    part_counts[b, ty * n_tx + tx] += 1
+                    t = ty * n_tx + tx
+                    part_counts[b, t] += 1
+                    part_pixels[b, t] += rows * (min(pix[k, 1], tx * TILE + TILE - 1) - max(pix[k, 0], tx * TILE) + 1)
     tile_start = np.zeros(n_tiles + 1, np.int64)
+    capacity = np.zeros(n_tiles + 1, np.int64)
     for t in range(n_tiles):
         total = 0
+        pixels = 0
         for b in range(n_parts):
             total += part_counts[b, t]
+            pixels += part_pixels[b, t]
         tile_start[t + 1] = tile_start[t] + total
+        capacity[t + 1] = capacity[t] + pixels
     tile_list = np.empty(tile_start[-1], np.int32)
+    slot_of_entry = np.empty(tile_start[-1], np.int64)
     for b in prange(n_parts):
         fill = tile_start[:-1].copy()
         for t in range(n_tiles):
@@ -288,25 +306,15 @@ def bin_tiles(front_to_back, box, n_tx, n_ty):
                 fill[t] += part_counts[earlier, t]
         for k in range(b * part_len, min(n, (b + 1) * part_len)):
             s = front_to_back[k]
+            slot = emit_start[s]
             for ty in range(tiles[k, 2], tiles[k, 3] + 1):
                 for tx in range(tiles[k, 0], tiles[k, 1] + 1):
                     t = ty * n_tx + tx
                     tile_list[fill[t]] = s
+                    slot_of_entry[fill[t]] = slot
+                    slot += 1
                     fill[t] += 1
-    slot_of_entry = np.empty(tile_start[-1], np.int64)
-    capacity = np.zeros(n_tiles + 1, np.int64)
-    for t in prange(n_tiles):
-        ty = t // n_tx
-        tx = t - ty * n_tx
-        cap = 0
-        for j in range(tile_start[t], tile_start[t + 1]):
-            s = tile_list[j]
-            tx0, ty0 = box[s, 0] // TILE, box[s, 2] // TILE
-            slot_of_entry[j] = emit_start[s] + (ty - ty0) * (box[s, 1] // TILE - tx0 + 1) + tx - tx0
-            rows = min(box[s, 3], ty * TILE + TILE - 1) - max(box[s, 2], ty * TILE) + 1
-            cap += rows * (min(box[s, 1], tx * TILE + TILE - 1) - max(box[s, 0], tx * TILE) + 1)
-        capacity[t + 1] = cap
-    return tile_start, tile_list, emit_start, slot_of_entry, np.cumsum(capacity)
+    return tile_start, tile_list, emit_start, slot_of_entry, capacity
 
 
 @njit(parallel=True, cache=True, error_model="numpy")

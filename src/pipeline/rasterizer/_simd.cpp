@@ -11,8 +11,8 @@
 // Each call renders tiles of ``tile_order`` (largest first) until none is left, taking the next
 // from a counter shared by the calls; the caller runs one call per thread. A tile is rendered
 // by one call, sequentially in list order, so results do not depend on which thread renders it
-// or on the number of threads. GCC / Clang vector extensions; AVX-512 for masks, compress and expand
-// where the compiler targets it, a lane loop otherwise.
+// or on the number of threads. GCC / Clang vector extensions; AVX-512 for masks, compress and
+// expand where the compiler targets it, a lane loop otherwise.
 #include <stdint.h>
 #include <string.h>
 
@@ -43,9 +43,10 @@ typedef int32_t vi __attribute__((vector_size(64)));
 typedef double vd __attribute__((vector_size(64)));
 // Half a tile row: an entry at most 8 pixels wide in its tile (83% of the box rows at 800x600 /
 // 200k surfels) is evaluated on the 8 columns from ``window_column``'s, half the work on CPUs
-// that split 512-bit operations. The operations per lane are the same, but the compiler may fuse multiply-adds
-// differently at the two widths (with -ffp-contract=off the results are bitwise those of 16
-// lanes), so they can differ in the last bits; the width depends only on the entry's box.
+// that split 512-bit operations. The operations per lane are the same, but the compiler may
+// fuse multiply-adds differently at the two widths (with -ffp-contract=off the results are
+// bitwise those of 16 lanes), so they can differ in the last bits; the width depends only on
+// the entry's box.
 typedef float vf8 __attribute__((vector_size(32)));
 typedef int32_t vi8 __attribute__((vector_size(32)));
 
@@ -170,27 +171,20 @@ template <class V16, class V8> inline V8 half(V16 v, int h) {
     return a;
 }
 #endif
-template <class V> struct Half;
-template <> struct Half<vf> {
-    typedef vf8 type;
-};
-template <> struct Half<vi> {
-    typedef vi8 type;
-};
+// The 8-lane vector of V's lane type: one row of a row pair.
+template <class V> using Half = std::conditional_t<std::is_same_v<V, Lanes<16>::F>, Lanes<8>::F, Lanes<8>::I>;
 // A step's lanes of a tile plane from ``p``: one row, or (P) 8 lanes of a row and the 8 below.
 template <class V, bool P, class T> inline V load_rows(const T *p) {
     if constexpr (P) {
-        typedef typename Half<V>::type H;
-        return join<H, V>(loadu<H>(p), loadu<H>(p + TILE));
+        return join<Half<V>, V>(loadu<Half<V>>(p), loadu<Half<V>>(p + TILE));
     } else {
         return loadu<V>(p);
     }
 }
 template <bool P, class T, class V> inline void store_rows(T *p, V v) {
     if constexpr (P) {
-        typedef typename Half<V>::type H;
-        storeu(p, half<V, H>(v, 0));
-        storeu(p + TILE, half<V, H>(v, 1));
+        storeu(p, half<V, Half<V>>(v, 0));
+        storeu(p + TILE, half<V, Half<V>>(v, 1));
     } else {
         storeu(p, v);
     }

@@ -42,6 +42,7 @@ class Geometry:
     depth: np.ndarray  # (P,) centre depth
     box: np.ndarray  # (P, 4) int64
     radii: np.ndarray  # (P,) int32
+    centre: np.ndarray  # (P, 2) projected centres (pixels), input dtype
     tile_start: np.ndarray
     tile_list: np.ndarray
     emit_start: np.ndarray
@@ -155,9 +156,10 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     depth = np.empty(P, np.float64)
     box = np.empty((P, 4), np.int64)
     radii = np.empty(P, np.int32)
+    centre = np.empty((P, 2), dtype)
     K.preprocess(
         _np(means), _np(quats), _np(scales), _np(opacities), Kc, Rwc, twc, camera.width, camera.height,
-        camera.near, camera.far, Tm, nrm, geo, depth, box, radii,
+        camera.near, camera.far, Tm, nrm, geo, depth, box, radii, centre,
     )  # fmt: skip
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
@@ -167,7 +169,7 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     cost = np.diff(rec_tile_start).astype(np.float64) + _ENTRY_COST * np.diff(tile_start)
     worker_start, worker_tiles = K.schedule_tiles(cost, numba.get_num_threads())
     return Geometry(
-        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
+        Tm, nrm, geo, depth, box, radii, centre, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
         worker_start, worker_tiles, n_tx,
     )  # fmt: skip
 
@@ -268,8 +270,7 @@ def render(
     """Maps ``[features, alpha, depth_expected, depth_median, normal_cam, normal_world,
     distortion]``, ``radii``, ``means2d`` and the geometry (for statistics)."""
     geom = compositor.prepare(means, quats, scales, opacities, camera)
-    centre = geom.geo[:, K.GEO_CX : K.GEO_CY + 1].astype(geom.Tm.dtype)
-    means2d = torch.from_numpy(centre).requires_grad_(torch.is_grad_enabled())
+    means2d = torch.from_numpy(geom.centre).requires_grad_(torch.is_grad_enabled())
     maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps, compositor)
     return list(maps), torch.from_numpy(geom.radii), means2d, geom
 

@@ -5,8 +5,9 @@ frame (rows ``T_u, T_v, T_w``), its camera-facing normal, its colour (SH evaluat
 towards the camera), and (not differentiable) its conservative pixel support box and
 the front-to-back order.
 
-Support box: a pair contributes only if ``alpha = o G >= 1/255``, i.e. if
-``rho = min(rho3, rho2) <= rho_cut = 2 ln(255 o)``. The box is the union of the
+Support box: a pair contributes only if ``alpha = o G >= 1/255`` and ``rho <= 9``
+(3 sigma, 2DGS's support), i.e. if ``rho = min(rho3, rho2) <= rho_cut = min(2 ln(255 o), 9)``.
+The box is the union of the
 image of the disc ``u^2 + v^2 <= rho_cut`` (an ellipse, bounded through the dual conic
 ``T diag(rho_cut, rho_cut, -1) T^T``) and the square ``|(x, y) - c| <= sqrt(rho_cut / 2)``
 of the low-pass term, widened by half a pixel. It never drops a contributing pair, so
@@ -26,6 +27,10 @@ from pipeline.rasterizer.types import Camera, Surfels
 ALPHA_MIN = 1.0 / 255.0
 ALPHA_MAX = 0.99
 T_MIN = 1e-4
+# A pair farther than 3 sigma from its surfel's centre (rho > 9) is skipped, as 2DGS's and
+# gsplat's kernels bound a surfel at 3 sigma; without it a surfel of opacity o reached to
+# rho = 2 ln(255 o) (3.33 sigma at o = 1): 14% more pairs for alpha < 0.011 o.
+RHO_CUT_MAX = 9.0
 # Where |u| or |v| would exceed UV_MAX (rho3 > 1e12, so alpha == 0 through rho3) the ray
 # counts as parallel to the splat: rho3 = inf. Shared by every backend; it keeps every
 # division bounded, so unused branches never produce inf * 0 in a gradient.
@@ -124,7 +129,7 @@ def support_boxes(T: Tensor, opacities: Tensor, camera: Camera) -> tuple[Tensor,
     z = T[:, 2, 2]
     in_range = (z >= camera.near) & (z <= camera.far)
     with torch.no_grad():
-        rho_cut = 2.0 * torch.log(255.0 * o)  # -inf at o = 0
+        rho_cut = torch.clamp_max(2.0 * torch.log(255.0 * o), RHO_CUT_MAX)  # -inf at o = 0
         ok = in_range & (rho_cut >= 0)
         r2 = torch.where(ok, rho_cut, torch.zeros_like(rho_cut))
         Tu, Tv, Tw = T[:, 0], T[:, 1], T[:, 2]

@@ -2,7 +2,8 @@
 
 Every (pixel, surfel) pair is evaluated; the skip and stop rules are masks:
 
-* skip a pair when its intersection depth ``z < near`` or ``alpha < 1/255``;
+* skip a pair when its intersection depth ``z < near``, ``alpha < 1/255`` or ``rho > 9``
+  (beyond 3 sigma);
 * stop a pixel at the first pair whose next transmittance ``T (1 - alpha) < 1e-4``
   (that pair and every later one are dropped). The inclusive transmittance is
   non-increasing, so "dropped" is simply ``cumprod(1 - alpha) < 1e-4``.
@@ -17,7 +18,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, T_MIN, UV_MAX, Projected
+from pipeline.rasterizer.project import ALPHA_MAX, ALPHA_MIN, RHO_CUT_MAX, T_MIN, UV_MAX, Projected
 from pipeline.rasterizer.types import Camera
 
 def _composite(x: Tensor, y: Tensor, T: Tensor, o: Tensor, n: Tensor, f: Tensor, camera: Camera) -> list[Tensor]:
@@ -43,7 +44,7 @@ def _composite(x: Tensor, y: Tensor, T: Tensor, o: Tensor, n: Tensor, f: Tensor,
     z = torch.where(use3, u * Tw[..., 0] + v * Tw[..., 1] + Tw[..., 2], Tw[..., 2].expand_as(u))
 
     alpha = torch.clamp_max(o[None, :] * torch.exp(-0.5 * rho), ALPHA_MAX)
-    keep = (z >= camera.near) & (alpha >= ALPHA_MIN)
+    keep = (z >= camera.near) & (alpha >= ALPHA_MIN) & (rho <= RHO_CUT_MAX)
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
     keep = keep & (torch.cumprod(1.0 - alpha, dim=1) >= T_MIN)  # the stop rule
     alpha = torch.where(keep, alpha, torch.zeros_like(alpha))

@@ -316,10 +316,10 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     Kc, Rwc, twc = cpu._camera_arrays(camera)
     Tm, nrm = np.empty((P, 9), np.float32), np.empty((P, 3), np.float32)
     geo, depth = np.empty((P, K.GEO_SIZE), np.float64), np.empty(P, np.float64)
-    box, radii = np.empty((P, 4), np.int64), np.empty(P, np.int32)
+    box, radii, centre = np.empty((P, 4), np.int64), np.empty(P, np.int32), np.empty((P, 2), np.float32)
     K.preprocess(
         cpu._np(means), cpu._np(quats), cpu._np(scales), cpu._np(opacities), Kc, Rwc, twc, camera.width,
-        camera.height, camera.near, camera.far, Tm, nrm, geo, depth, box, radii,
+        camera.height, camera.near, camera.far, Tm, nrm, geo, depth, box, radii, centre,
     )  # fmt: skip
     n_tx, n_ty = -(-camera.width // K.TILE), -(-camera.height // K.TILE)
     tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = K.bin_tiles(depth_order(depth, radii), box, n_tx, n_ty)
@@ -330,7 +330,7 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     # records of the next tile when that one had been rendered first.
     rec_tile_start = rec_tile_start + RECORD_SLACK * np.arange(rec_tile_start.shape[0])
     return cpu.Geometry(
-        Tm, nrm, geo, depth, box, radii, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
+        Tm, nrm, geo, depth, box, radii, centre, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
         np.array([0, tile_order.shape[0]]), tile_order, n_tx,
     )  # fmt: skip
 
