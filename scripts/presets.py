@@ -3,10 +3,11 @@ each run, and write ``reports/presets.{csv,md,png}`` (docs/presets.md).
 
 Each run is ``gcgs optimize``, ``gcgs mesh`` and ``gcgs score`` with the preset's params
 (``conf/optimize/PRESET.yaml`` composed as ``gcgs params optimize=PRESET`` would, the seed
-set) on the DVC outputs of the scene (``--inputs``: scenes/, init/, priors/). Runs whose
-metrics exist at this commit are kept (the ladder resumes); the report is rewritten after each
-run. ``--jobs`` runs at once, each on ``--threads`` threads (GCGS_THREADS), cheapest preset
-first, so that the ladder's lower steps land first. Every row records the commit it ran on; the code must be
+set) on the DVC outputs of the scene (``--inputs``: scenes/, init/, priors/, and the ground
+truth that params name, resolved against the same checkout). Runs whose metrics exist at this
+commit are kept (the ladder resumes); the report is rewritten after each run. ``--jobs`` runs
+at once, each on ``--threads`` threads (GCGS_THREADS), cheapest preset first, so that the
+ladder's lower steps land first. Every row records the commit it ran on; the code must be
 committed (a dirty ``src/`` or ``conf/`` is refused).
 
     python scripts/presets.py [--presets quick fast ...] [--seeds 0 1 2] [--jobs 2] [--inputs data]
@@ -58,6 +59,17 @@ def gcgs(args: list[str], log: Path, env: dict) -> None:
         raise RuntimeError(f"gcgs {' '.join(args)} failed ({res.returncode}); log {log}")
 
 
+def with_inputs(params: dict, inputs: Path) -> dict:
+    """``params`` with the scenes' relative ``src`` and ``gt`` paths (``data/...``, relative to
+    a checkout) resolved against the checkout that holds ``inputs`` (its ``data/`` folder), so
+    that a ladder run from another folder scores against the same ground truth."""
+    root = inputs.parent
+    scenes = {name: {k: (str(root / v) if k in ("src", "gt") and v and not Path(v).is_absolute() else v)
+                     for k, v in entry.items()}
+              for name, entry in params.get("scenes", {}).items()}
+    return {**params, "scenes": scenes}
+
+
 def run_one(preset: str, scene: str, seed: int, params: dict, inputs: Path, work: Path, threads: int,
             commit: str) -> dict:
     cell = work / preset / scene / f"seed{seed}"
@@ -68,7 +80,7 @@ def run_one(preset: str, scene: str, seed: int, params: dict, inputs: Path, work
             return row
         shutil.rmtree(cell)  # a run of other code must not land in this commit's ladder
     cell.mkdir(parents=True, exist_ok=True)
-    params = {**params, "optimize": {**params["optimize"], "seed": seed}}
+    params = {**with_inputs(params, inputs), "optimize": {**params["optimize"], "seed": seed}}
     (cell / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     env = dict(os.environ, GCGS_THREADS=str(threads))
     log, p = cell / "log.txt", ["--params", str(cell / "params.yaml")]
@@ -94,7 +106,8 @@ def main() -> int:
     ap.add_argument("--presets", nargs="+", default=list(LADDER))
     ap.add_argument("--scenes", nargs="+", default=list(SCENES))
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
-    ap.add_argument("--inputs", type=Path, default=REPO / "data", help="DVC outputs: scenes/, init/, priors/")
+    ap.add_argument("--inputs", type=Path, default=REPO / "data",
+                    help="a checkout's data/ folder: scenes/, init/, priors/ and the synthetic scenes' ground truth")
     ap.add_argument("--work", type=Path, default=REPO / "data" / "presets")
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--threads", type=int, default=1, help="GCGS_THREADS of each run")
