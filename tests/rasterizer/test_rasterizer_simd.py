@@ -116,15 +116,38 @@ def test_depth_order_is_the_cpu_backends(case):
     np.testing.assert_array_equal(got, cpu.depth_order(depth, radii))
 
 
-def test_prepare_bins_as_the_cpu_backend():
-    from pipeline.rasterizer import cpu
-
+def _prepare_cases():
     cam, n2w = dtu_camera(200, 150)
-    s = object_surfels(5_000, n2w, seed=0)
+    yield object_surfels(5_000, n2w, seed=0), cam
+    for seed in range(3):  # scales over six decades; seed 2 with zero and tiny opacities, surfels behind
+        cam = random_camera(64, 48, seed)
+        s = random_surfels(501, cam, 3, seed, torch.float32, scale=(1e-6, 3.0))
+        if seed == 2:
+            s.opacities.data[:10] = 0.0
+            s.opacities.data[10:20] = 1e-3
+            s.means.data[20:30, 2] *= -1.0
+        yield s, cam
+
+
+@pytest.mark.parametrize("case", range(4))
+def test_prepare_is_the_cpu_backends_bit_for_bit(case):
+    """The C++ set-up and binning against the numba kernels: every per-surfel output, the
+    kernels' float32 rows (``geo`` rounded, then the centre depth, normal and box) and the
+    tile lists, bit for bit."""
+    from pipeline.rasterizer import cpu
+    from pipeline.rasterizer import _kernels as K
+
+    s, cam = list(_prepare_cases())[case]
     a = simd.prepare(s.means, s.quats, s.scales, s.opacities, cam)
     b = cpu.prepare(s.means, s.quats, s.scales, s.opacities, cam)
-    for k in ("tile_start", "tile_list", "emit_start", "slot_of_entry", "box", "radii", "geo"):
-        np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
+    if case == 3:
+        assert (b.radii == 0).sum() >= 10, "the undrawn surfels' rows are compared too"
+    for k in ("Tm", "nrm", "depth", "box", "radii", "centre", "tile_start", "tile_list", "emit_start", "slot_of_entry"):
+        x, y = getattr(a, k), getattr(b, k)
+        assert x.dtype == y.dtype and x.shape == y.shape, k
+        assert x.tobytes() == y.tobytes(), k
+    expected = np.concatenate([b.geo.astype(np.float32), b.Tm[:, 8:9], b.nrm, b.box.astype(np.float32)], axis=1)
+    assert a.surf[:, : K.E_FEAT].tobytes() == expected.tobytes()
     # each tile's record region as the cpu backend's, with room for one vector behind it
     slack = simd.RECORD_SLACK * np.arange(b.rec_tile_start.shape[0])
     np.testing.assert_array_equal(a.rec_tile_start, b.rec_tile_start + slack)

@@ -63,8 +63,11 @@ MAPS = ("features", "alpha", "depth_expected", "depth_median", "normal_cam", "no
 REF_BYTES_PER_PAIR = 150
 REF_BLOCK = 8
 KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels.py; rasterizer/simd.py's C++ runners)
-    "set-up and binning": ("preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles", "simd.depth_order"),
-    "forward compositing": ("gather_entries", "forward", "simd.pack_surfels", "simd.forward_all"),
+    "set-up and binning": (
+        "preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles",
+        "simd.preprocess_all", "simd.depth_order", "simd.bin_tiles",
+    ),
+    "forward compositing": ("gather_entries", "forward", "simd.put_features", "simd.forward_all"),
     "backward compositing": ("backward", "simd.backward_all"),
     "per-surfel reduction": ("reduce_and_chain",),
 }

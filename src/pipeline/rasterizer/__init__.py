@@ -3,8 +3,8 @@
     out = rasterize(Surfels(means, quats, scales, opacities, features), Camera(K, world_to_cam, W, H), "auto")
 
 * ``cpu``: hand-written numba forward/backward kernels, multithreaded over 16x16 tiles.
-* ``simd``: ``cpu`` with its compositing kernels in C++ (float32 vector lanes), built on
-  first use by the system's compiler; ``auto`` picks it wherever it builds.
+* ``simd``: ``cpu`` with its set-up and compositing kernels in C++ (float32 vector lanes),
+  built on first use by the system's compiler; ``auto`` picks it wherever it builds.
 * ``reference``: dense pure PyTorch with autograd; the oracle for tests.
 * ``cuda``: gsplat's ``rasterization_2dgs`` (needs CUDA and gsplat); it composites
   surfel-centre depths, see ``docs/rasterizer.md``.

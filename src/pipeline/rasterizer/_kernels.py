@@ -32,8 +32,10 @@ scheduling. Memory kept for the backward grows with the pairs (records: the boxe
 pixel count x 3 values, an upper bound; gathered entries and slots: the (tile, surfel)
 pairs x (24 + C) and (17 + C) float64).
 
-Arithmetic is float64 inside; inputs may be float32 or float64 and outputs, gradients
-and pair records take the input dtype. The per-pixel state kept for the backward is
+Arithmetic is float64 inside, but for one rounding: numba types ``float()`` of a float32
+as float32, so for float32 surfels the quaternion's squared norm and its root are float32
+(in ``preprocess`` and ``reduce_and_chain``). Inputs may be float32 or float64 and outputs,
+gradients and pair records take the input dtype. The per-pixel state kept for the backward is
 float64.
 """
 from __future__ import annotations

@@ -23,7 +23,7 @@
 
 namespace {
 
-constexpr int TILE = 16, NPX = TILE * TILE, MAXC = 8;
+constexpr int TILE_SHIFT = 4, TILE = 1 << TILE_SHIFT, NPX = TILE * TILE, MAXC = 8;
 // Columns of an entry row (``_kernels``: GEO_*, E_*) and of a gradient slot (S_*).
 enum { GEO_AX = 0, GEO_AY = 3, GEO_A0 = 6, GEO_DET = 9, GEO_CX = 10, GEO_CY = 11, GEO_RHO_MAX = 12,
        GEO_OPACITY = 13, GEO_INV_DET = 14, GEO_INV_ZC = 15, E_ZC = 16, E_NRM = 17, E_BOX = 20, E_FEAT = 24 };
@@ -41,6 +41,7 @@ constexpr float ALPHA_MIN = 1.0f / 255.0f, ALPHA_MAX = 0.99f, T_MIN = 1e-4f, UV_
 typedef float vf __attribute__((vector_size(64)));
 typedef int32_t vi __attribute__((vector_size(64)));
 typedef double vd __attribute__((vector_size(64)));
+typedef int64_t vl __attribute__((vector_size(64)));
 // Half a tile row: an entry at most 8 pixels wide in its tile (83% of the box rows at 800x600 /
 // 200k surfels) is evaluated on the 8 columns from ``window_column``'s, half the work on CPUs
 // that split 512-bit operations. The operations per lane are the same, but the compiler may
@@ -698,6 +699,209 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
     }
 }
 
+// ---- Per-surfel set-up: ``_kernels.preprocess`` for float32 surfels, 8 surfels per step in
+// float64 lanes, writing each surfel's row of the kernels' table (GEO_*, E_ZC, E_NRM, E_BOX)
+// in float32 where the numba kernel writes a float64 ``geo`` that was then packed. The same
+// operations in the same order, no fused multiply-adds, glibc's log and sqrt: every output is
+// bit for bit the numba kernel's (the tests compare them), so the two backends bin alike.
+constexpr int PRE_LANES = 8;
+constexpr double RHO_SLACK = 1e-6, RHO_CUT_MAX = 9.0;  // _kernels._RHO_SLACK, project.RHO_CUT_MAX
+
+inline vd dsplat(double a) { return (vd){} + a; }
+inline vd round_to_float(vd a) { return __builtin_convertvector(__builtin_convertvector(a, vf8), vd); }
+// Python's min / max as numba compiles them: the first argument unless the second is strictly
+// smaller (larger); differs from the compositing's vmin / vmax at signed zeros and NaN.
+inline vd py_min(vd a, vd b) { return b < a ? b : a; }
+inline vd py_max(vd a, vd b) { return b > a ? b : a; }
+inline vd lane_sqrt(vd a) {
+    for (int l = 0; l < PRE_LANES; l++) a[l] = __builtin_sqrt(a[l]);
+    return a;
+}
+
+#if defined(__clang__)
+#define NO_CONTRACT
+#else
+#define NO_CONTRACT __attribute__((optimize("fp-contract=off", "no-math-errno")))
+#endif
+
+NO_CONTRACT void preprocess_range(const float *means, const float *quats, const float *scales, const float *opac,
+                                  const double *K, const double *Rwc, const double *twc, int64_t width,
+                                  int64_t height, double near, double far, float *Tm, float *nrm, double *depth,
+                                  int64_t *box, int32_t *radii, float *centre, float *surf, int64_t surf_cols,
+                                  int64_t begin, int64_t end) {
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const double fx = K[0], sk = K[1], cx0 = K[2], fy = K[4], cy0 = K[5];
+    const double big = 4.0 * (double)(width > height ? width : height);
+    for (int64_t i0 = begin; i0 < end; i0 += PRE_LANES) {
+        const int n = end - i0 < PRE_LANES ? (int)(end - i0) : PRE_LANES;
+        vd w, x, y, z, s0, s1, m0, m1, m2, o;
+        for (int l = 0; l < PRE_LANES; l++) {
+            const int64_t i = i0 + (l < n ? l : 0);
+            w[l] = quats[i * 4], x[l] = quats[i * 4 + 1], y[l] = quats[i * 4 + 2], z[l] = quats[i * 4 + 3];
+            s0[l] = scales[i * 2], s1[l] = scales[i * 2 + 1];
+            m0[l] = means[i * 3], m1[l] = means[i * 3 + 1], m2[l] = means[i * 3 + 2];
+            o[l] = opac[i];
+        }
+        // numba types float() of a float32 as float32: the squared norm and its root are float32.
+        const vf8 wf = __builtin_convertvector(w, vf8), xf = __builtin_convertvector(x, vf8);
+        const vf8 yf = __builtin_convertvector(y, vf8), zf = __builtin_convertvector(z, vf8);
+        vf8 norm = wf * wf + xf * xf + yf * yf + zf * zf;
+        for (int l = 0; l < PRE_LANES; l++) norm[l] = __builtin_sqrtf(norm[l]);
+        const vd inv = 1.0 / __builtin_convertvector(norm, vd);
+        w = w * inv, x = x * inv, y = y * inv, z = z * inv;
+        vd R[3][3];
+        R[0][0] = 1 - 2 * (y * y + z * z), R[0][1] = 2 * (x * y - w * z), R[0][2] = 2 * (x * z + w * y);
+        R[1][0] = 2 * (x * y + w * z), R[1][1] = 1 - 2 * (x * x + z * z), R[1][2] = 2 * (y * z - w * x);
+        R[2][0] = 2 * (x * z - w * y), R[2][1] = 2 * (y * z + w * x), R[2][2] = 1 - 2 * (x * x + y * y);
+        vd M[3][3], nv[3];  // camera-frame columns s_u t_u, s_v t_v, p_c; the normal
+        for (int r = 0; r < 3; r++) {
+            const double a = Rwc[r * 3], b = Rwc[r * 3 + 1], c = Rwc[r * 3 + 2];
+            M[r][0] = s0 * (a * R[0][0] + b * R[1][0] + c * R[2][0]);
+            M[r][1] = s1 * (a * R[0][1] + b * R[1][1] + c * R[2][1]);
+            M[r][2] = a * m0 + b * m1 + c * m2 + twc[r];
+            nv[r] = a * R[0][2] + b * R[1][2] + c * R[2][2];
+        }
+        const vd d = nv[0] * M[0][2] + nv[1] * M[1][2] + nv[2] * M[2][2];
+        const vd sgn = d > 0 ? dsplat(-1.0) : (d < 0 ? dsplat(1.0) : dsplat(0.0));
+        vd T[3][3];
+        for (int c = 0; c < 3; c++) {
+            T[0][c] = fx * M[0][c] + sk * M[1][c] + cx0 * M[2][c];
+            T[1][c] = fy * M[1][c] + cy0 * M[2][c];
+            T[2][c] = M[2][c];
+        }
+        for (int r = 0; r < 3; r++)  // the geometry of the stored (float32) ray transform
+            for (int c = 0; c < 3; c++) T[r][c] = round_to_float(T[r][c]);
+        auto cross = [](vd a0, vd a1, vd a2, vd b0, vd b1, vd b2, vd *out) {
+            out[0] = a1 * b2 - a2 * b1, out[1] = a2 * b0 - a0 * b2, out[2] = a0 * b1 - a1 * b0;
+        };
+        vd ax[3], ay[3], a0[3];
+        cross(T[1][0], T[1][1], T[1][2], T[2][0], T[2][1], T[2][2], ax);
+        cross(T[2][0], T[2][1], T[2][2], T[0][0], T[0][1], T[0][2], ay);
+        cross(T[0][0], T[0][1], T[0][2], T[1][0], T[1][1], T[1][2], a0);
+        const vd zc = T[2][2];
+        vd rho_cut;
+        for (int l = 0; l < PRE_LANES; l++) {  // glibc's log, as numba calls it
+            const double v = 2.0 * __builtin_log(255.0 * o[l]);
+            rho_cut[l] = o[l] > 0 ? (v < RHO_CUT_MAX ? v : RHO_CUT_MAX) : -1.0;
+        }
+        const vd det = T[2][0] * a0[0] + T[2][1] * a0[1] + T[2][2] * a0[2];
+        const vd inv_det = det != 0.0 ? 1.0 / (det != 0.0 ? det : 1.0) : 0.0;
+        const vd inv_zc = zc != 0.0 ? 1.0 / (zc != 0.0 ? zc : 1.0) : 0.0;
+        const vd rho_max = rho_cut * (1.0 + RHO_SLACK) + RHO_SLACK;
+        const vl drawn = (zc >= near) & (zc <= far) & (rho_cut >= 0.0);
+        const vd pcx = drawn ? T[0][2] / zc : 0.0, pcy = drawn ? T[1][2] / zc : 0.0;
+        // Support box: the disc's image through the dual conic, union the low-pass square
+        // (the numba kernel's comments).
+        const vd r2 = rho_cut;
+        const vd c22 = r2 * (T[2][0] * T[2][0] + T[2][1] * T[2][1]) - T[2][2] * T[2][2];
+        const vd d2 = lane_sqrt(py_max(r2, dsplat(0.0)) / 2.0);
+        vd lo_x = dsplat(-big), hi_x = dsplat(big), lo_y = dsplat(-big), hi_y = dsplat(big);
+        const vl ellipse = c22 < 0;
+        {
+            const vd den = ellipse ? c22 : -1.0;
+            const vd c02 = r2 * (T[0][0] * T[2][0] + T[0][1] * T[2][1]) - T[0][2] * T[2][2];
+            const vd c12 = r2 * (T[1][0] * T[2][0] + T[1][1] * T[2][1]) - T[1][2] * T[2][2];
+            const vd c00 = r2 * (T[0][0] * T[0][0] + T[0][1] * T[0][1]) - T[0][2] * T[0][2];
+            const vd c11 = r2 * (T[1][0] * T[1][0] + T[1][1] * T[1][1]) - T[1][2] * T[1][2];
+            const vd xc = c02 / den, yc = c12 / den;
+            const vd hx = lane_sqrt(py_max(xc * xc - c00 / den, dsplat(0.0)));
+            const vd hy = lane_sqrt(py_max(yc * yc - c11 / den, dsplat(0.0)));
+            const vd lx = py_min(xc - hx, pcx - d2), ux = py_max(xc + hx, pcx + d2);
+            const vd ly = py_min(yc - hy, pcy - d2), uy = py_max(yc + hy, pcy + d2);
+            const vd inf = dsplat(__builtin_inf());
+            const vl finite = (lx > -inf) & (lx < inf) & (ux > -inf) & (ux < inf) & (ly > -inf) & (ly < inf) &
+                              (uy > -inf) & (uy < inf);
+            const vl use = ellipse & finite;
+            lo_x = use ? lx : lo_x, hi_x = use ? ux : hi_x, lo_y = use ? ly : lo_y, hi_y = use ? uy : hi_y;
+        }
+        const vd rad = py_max(py_max(hi_x - pcx, pcx - lo_x), py_max(hi_y - pcy, pcy - lo_y));
+        for (int l = 0; l < n; l++) {
+            const int64_t i = i0 + l;
+            float *tm = Tm + i * 9, *row = surf + i * surf_cols;
+            for (int r = 0; r < 3; r++)
+                for (int c = 0; c < 3; c++) tm[3 * r + c] = (float)T[r][c][l];
+            for (int r = 0; r < 3; r++) nrm[i * 3 + r] = row[E_NRM + r] = (float)(sgn[l] * nv[r][l]);
+            depth[i] = zc[l];
+            row[E_ZC] = tm[8];
+            for (int c = 0; c < 3; c++) {
+                row[GEO_AX + c] = (float)ax[c][l];
+                row[GEO_AY + c] = (float)ay[c][l];
+                row[GEO_A0 + c] = (float)a0[c][l];
+            }
+            row[GEO_DET] = (float)det[l], row[GEO_INV_DET] = (float)inv_det[l], row[GEO_INV_ZC] = (float)inv_zc[l];
+            row[GEO_RHO_MAX] = (float)rho_max[l], row[GEO_OPACITY] = (float)o[l];
+            row[GEO_CX] = centre[i * 2] = (float)pcx[l];
+            row[GEO_CY] = centre[i * 2 + 1] = (float)pcy[l];
+            int64_t b[4] = {0, -1, 0, -1};
+            radii[i] = 0;
+            if (drawn[l]) {
+                const double fw = (double)width, fh = (double)height;
+                const double ex0 = lo_x[l] - 0.5, ex1 = hi_x[l] + 0.5, ey0 = lo_y[l] - 0.5, ey1 = hi_y[l] + 0.5;
+                int64_t xmin = (int64_t)__builtin_ceil(ex0 > -1.0 ? ex0 : -1.0);
+                int64_t xmax = (int64_t)__builtin_floor(ex1 < fw ? ex1 : fw);
+                int64_t ymin = (int64_t)__builtin_ceil(ey0 > -1.0 ? ey0 : -1.0);
+                int64_t ymax = (int64_t)__builtin_floor(ey1 < fh ? ey1 : fh);
+                xmin = xmin > 0 ? xmin : 0, ymin = ymin > 0 ? ymin : 0;
+                xmax = xmax < width - 1 ? xmax : width - 1, ymax = ymax < height - 1 ? ymax : height - 1;
+                if (xmin <= xmax && ymin <= ymax) {
+                    b[0] = xmin, b[1] = xmax, b[2] = ymin, b[3] = ymax;
+                    const double rc = rad[l] > 0.0 ? rad[l] : 0.0;
+                    const int64_t rr = (int64_t)__builtin_ceil(rc < big ? rc : big);
+                    radii[i] = (int32_t)(rr > 1 ? rr : 1);
+                }
+            }
+            for (int k = 0; k < 4; k++) box[i * 4 + k] = b[k], row[E_BOX + k] = (float)b[k];
+        }
+    }
+}
+
+// ---- Tile binning (``_kernels.bin_tiles``' two passes over one part of the depth order; the
+// same lists and slots). The boxes are read in depth order, i.e. at scattered ids: fetched a
+// few surfels ahead, which numba cannot ask for.
+constexpr int BIN_AHEAD = 16;
+
+void bin_count_range(const int64_t *front_to_back, const int64_t *box, int64_t begin, int64_t end, int64_t n,
+                     int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
+    for (int64_t k = begin; k < end; k++) {
+        if (k + BIN_AHEAD < n) __builtin_prefetch(box + front_to_back[k + BIN_AHEAD] * 4);
+        const int64_t s = front_to_back[k];
+        const int64_t *b = box + s * 4;
+        const int64_t tx0 = b[0] >> TILE_SHIFT, tx1 = b[1] >> TILE_SHIFT, ty0 = b[2] >> TILE_SHIFT,
+                      ty1 = b[3] >> TILE_SHIFT;
+        int32_t *tk = tiles + k * 4;
+        tk[0] = (int32_t)tx0, tk[1] = (int32_t)tx1, tk[2] = (int32_t)ty0, tk[3] = (int32_t)ty1;
+        per_surfel[s + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1);
+        for (int64_t ty = ty0; ty <= ty1; ty++) {
+            const int64_t y0 = ty * TILE;
+            const int64_t rows = (b[3] < y0 + TILE - 1 ? b[3] : y0 + TILE - 1) - (b[2] > y0 ? b[2] : y0) + 1;
+            for (int64_t tx = tx0; tx <= tx1; tx++) {
+                const int64_t x0 = tx * TILE, t = ty * n_tx + tx;
+                counts[t] += 1;
+                pixels[t] += rows * ((b[1] < x0 + TILE - 1 ? b[1] : x0 + TILE - 1) - (b[0] > x0 ? b[0] : x0) + 1);
+            }
+        }
+    }
+}
+
+void bin_fill_range(const int64_t *front_to_back, const int32_t *tiles, const int64_t *emit_start, int64_t begin,
+                    int64_t end, int64_t n, int64_t n_tx, int64_t *cursor, int32_t *tile_list,
+                    int64_t *slot_of_entry) {
+    for (int64_t k = begin; k < end; k++) {
+        if (k + BIN_AHEAD < n) __builtin_prefetch(emit_start + front_to_back[k + BIN_AHEAD]);
+        const int64_t s = front_to_back[k];
+        const int32_t *tk = tiles + k * 4;
+        int64_t slot = emit_start[s];
+        for (int64_t ty = tk[2]; ty <= tk[3]; ty++)
+            for (int64_t tx = tk[0]; tx <= tk[1]; tx++) {
+                const int64_t j = cursor[ty * n_tx + tx]++;
+                tile_list[j] = (int32_t)s;
+                slot_of_entry[j] = slot++;
+            }
+    }
+}
+
 }  // namespace
 
 extern "C" {
@@ -740,6 +944,30 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
         CHANNELS(CASE)
 #undef CASE
     }
+}
+
+// ``_kernels.preprocess`` on surfels [begin, end), with each surfel's float32 row of the kernels'
+// table (the caller runs one call per chunk of surfels, one per thread at a time).
+void simd_preprocess(const float *means, const float *quats, const float *scales, const float *opac, const double *K,
+                     const double *Rwc, const double *twc, int64_t width, int64_t height, double near, double far,
+                     float *Tm, float *nrm, double *depth, int64_t *box, int32_t *radii, float *centre, float *surf,
+                     int64_t surf_cols, int64_t begin, int64_t end) {
+    preprocess_range(means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, depth, box, radii,
+                     centre, surf, surf_cols, begin, end);
+}
+
+// ``_kernels.bin_tiles``' count over entries [begin, end) of the depth order (``n`` long): each
+// entry's tile range, its surfel's tile count, and per tile the entries and their box pixels
+// (added to ``counts`` and ``pixels``, one row per part of the order).
+void simd_bin_count(const int64_t *front_to_back, const int64_t *box, int64_t begin, int64_t end, int64_t n,
+                    int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
+    bin_count_range(front_to_back, box, begin, end, n, n_tx, tiles, per_surfel, counts, pixels);
+}
+
+// Its fill: each entry's surfel and gradient slot at its tile's ``cursor`` (advanced).
+void simd_bin_fill(const int64_t *front_to_back, const int32_t *tiles, const int64_t *emit_start, int64_t begin,
+                   int64_t end, int64_t n, int64_t n_tx, int64_t *cursor, int32_t *tile_list, int64_t *slot_of_entry) {
+    bin_fill_range(front_to_back, tiles, emit_start, begin, end, n, n_tx, cursor, tile_list, slot_of_entry);
 }
 
 // The kernels' exp on n floats (tested against numpy's).

@@ -38,7 +38,7 @@ class Geometry:
 
     Tm: np.ndarray  # (P, 9) ray transforms, row-major, input dtype
     nrm: np.ndarray  # (P, 3) camera-facing normals, input dtype
-    geo: np.ndarray  # (P, GEO_SIZE) float64, see _kernels.GEO_*
+    geo: np.ndarray | None  # (P, GEO_SIZE) float64, see _kernels.GEO_* (None: the simd backend's ``surf``)
     depth: np.ndarray  # (P,) centre depth
     box: np.ndarray  # (P, 4) int64
     radii: np.ndarray  # (P,) int32
@@ -51,6 +51,7 @@ class Geometry:
     worker_start: np.ndarray  # tiles per thread, balanced by their pixel-surfel pairs
     worker_tiles: np.ndarray
     n_tx: int
+    surf: np.ndarray | None = None  # simd backend: (P, simd.SURF_COLS) float32 rows, GEO_* then E_*
 
     @property
     def num_pairs(self) -> int:

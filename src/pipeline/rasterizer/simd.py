@@ -1,15 +1,16 @@
-"""The ``simd`` backend of :mod:`pipeline.rasterizer`: the ``cpu`` backend with its two
+"""The ``simd`` backend of :mod:`pipeline.rasterizer`: the ``cpu`` backend with its set-up and
 compositing kernels in C++, what ``auto`` picks wherever they build.
 
-The per-surfel set-up, the tile binning and the per-surfel chain rule are the ``cpu``
-backend's numba kernels (with a radix depth sort of their own, :func:`depth_order`, and one
-float32 row per surfel, :func:`pack_surfels`, that the kernels read through the tile lists);
-the forward and backward compositing (~80% of a render at 800x600) are ``_simd.cpp``: a tile
-row of 16 pixels in one vector of float32 lanes, or 8 where an entry's box is at most 8 pixels
-wide in its tile (docs/rasterizer.md, "The simd kernels"). Float32 input only; arithmetic is float32 like
-2DGS's CUDA kernels, so results match the ``cpu`` backend to float32 rounding, not bit for
-bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap, ``T > 0.5`` for the median,
-``rho3 <= rho2``) can fall on the other side.
+The per-surfel set-up and the tile binning are ``_simd.cpp``'s too (:func:`preprocess_all`,
+:func:`bin_tiles`: bit for bit the numba kernels' boxes, lists and slots, with one float32 row
+per surfel, ``Geometry.surf``, that the compositing reads through the tile lists), the depth sort
+a radix sort of its own (:func:`depth_order`); the per-surfel chain rule is the ``cpu``
+backend's numba kernel. The forward and backward compositing (~80% of a render at 800x600) take
+a tile row of 16 pixels in one vector of float32 lanes, or 8 where an entry's box is at most 8
+pixels wide in its tile (docs/rasterizer.md, "The simd kernels"). Float32 input only;
+arithmetic is float32 like 2DGS's CUDA kernels, so results match the ``cpu`` backend to float32
+rounding, not bit for bit, and a pair at a threshold (``alpha >= 1/255``, the 0.99 cap,
+``T > 0.5`` for the median, ``rho3 <= rho2``) can fall on the other side.
 
 The source ships with the package and is compiled on first use by the system's C++ compiler
 (``$CXX``, else ``c++``) for the host CPU (``-march=native``). Builds are cached per machine
@@ -35,6 +36,7 @@ import weakref
 from pathlib import Path
 
 import numba
+import numba.experimental.function_type  # noqa: F401  (numba's typing of _CFunction arguments)
 import numpy as np
 import torch
 from torch import Tensor
@@ -54,6 +56,11 @@ _I = ctypes.c_int64
 _D = ctypes.c_double
 _FORWARD_ARGS = [_P, _P, _I, _P, _P, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 7 + [_P] * 6 + [_P] * 6
 _BACKWARD_ARGS = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 6 + [_P] * 5 + [_P] * 7 + [_P]
+_PREPROCESS_ARGS = [_P] * 7 + [_I, _I, _D, _D] + [_P] * 7 + [_I, _I, _I]
+_BIN_COUNT_ARGS = [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P]
+_BIN_FILL_ARGS = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P]
+_FUNCTIONS = {"simd_forward": _FORWARD_ARGS, "simd_backward": _BACKWARD_ARGS, "simd_preprocess": _PREPROCESS_ARGS,
+              "simd_bin_count": _BIN_COUNT_ARGS, "simd_bin_fill": _BIN_FILL_ARGS}
 
 _lock = threading.Lock()
 _state: dict[str, object] = {}
@@ -118,10 +125,9 @@ def cache_dirs() -> list[Path]:
 
 def load(lib_path: Path) -> ctypes.CDLL:
     lib = ctypes.CDLL(str(lib_path))
-    lib.simd_forward.argtypes = _FORWARD_ARGS
-    lib.simd_forward.restype = None
-    lib.simd_backward.argtypes = _BACKWARD_ARGS
-    lib.simd_backward.restype = None
+    for name, argtypes in _FUNCTIONS.items():
+        getattr(lib, name).argtypes = argtypes
+        getattr(lib, name).restype = None
     lib.simd_exp.argtypes = [_P, _P, _I]
     lib.simd_exp.restype = None
     return lib
@@ -182,16 +188,69 @@ class _CFunction(numba.types.WrapperAddressProtocol):
         return self._signature
 
 
-def _kernels() -> tuple[_CFunction, _CFunction]:
-    """The library's forward and backward compositing kernels, for the runners."""
+def _kernels() -> dict[str, _CFunction]:
+    """The library's kernels by name (``simd_forward``, ...), for the runners."""
     with _lock:
         if "kernels" in _state:
             return _state["kernels"]  # type: ignore[return-value]
     lib = library()
-    kernels = (_CFunction(lib.simd_forward, _FORWARD_ARGS), _CFunction(lib.simd_backward, _BACKWARD_ARGS))
+    kernels = {name: _CFunction(getattr(lib, name), argtypes) for name, argtypes in _FUNCTIONS.items()}
     with _lock:
         _state["kernels"] = kernels
     return kernels
+
+
+_PREPROCESS_CHUNK = 2048  # surfels per C++ call of the set-up
+_BIN_PARTS = 8  # parts of the depth order binned in parallel (any count gives the same lists)
+
+
+@numba.njit(parallel=True, cache=True)
+def preprocess_all(pre, means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, depth, box, radii,
+                   centre, surf):  # fmt: skip
+    """``_kernels.preprocess`` in C++ (float32 surfels), with each surfel's row of ``surf``
+    (the compositing kernels' table, features aside) in place of the float64 ``geo``."""
+    P = means.shape[0]
+    for c in numba.prange(-(-P // _PREPROCESS_CHUNK)):
+        lo = c * _PREPROCESS_CHUNK
+        pre(means.ctypes, quats.ctypes, scales.ctypes, opac.ctypes, K.ctypes, Rwc.ctypes, twc.ctypes, width, height,
+            near, far, Tm.ctypes, nrm.ctypes, depth.ctypes, box.ctypes, radii.ctypes, centre.ctypes, surf.ctypes,
+            surf.shape[1], lo, min(P, lo + _PREPROCESS_CHUNK))  # fmt: skip
+
+
+@numba.njit(parallel=True, cache=True)
+def bin_tiles(count, fill, front_to_back, box, n_tx, n_ty):
+    """``_kernels.bin_tiles`` (same outputs, bit for bit) with its two passes in C++: the count
+    fetches the boxes, read in depth order at scattered ids, ahead of use."""
+    P = box.shape[0]
+    n_tiles = n_tx * n_ty
+    n = front_to_back.shape[0]
+    per_surfel = np.zeros(P + 1, np.int64)
+    tiles = np.empty((n, 4), np.int32)
+    part_len = -(-n // _BIN_PARTS)
+    counts = np.zeros((_BIN_PARTS, n_tiles), np.int64)
+    pixels = np.zeros((_BIN_PARTS, n_tiles), np.int64)
+    for b in numba.prange(_BIN_PARTS):
+        count(front_to_back.ctypes, box.ctypes, min(n, b * part_len), min(n, (b + 1) * part_len), n, n_tx,
+              tiles.ctypes, per_surfel.ctypes, counts[b].ctypes, pixels[b].ctypes)  # fmt: skip
+    emit_start = np.cumsum(per_surfel)
+    tile_start = np.zeros(n_tiles + 1, np.int64)
+    capacity = np.zeros(n_tiles + 1, np.int64)
+    cursor = np.empty((_BIN_PARTS, n_tiles), np.int64)
+    for t in range(n_tiles):
+        at = tile_start[t]
+        pix = 0
+        for b in range(_BIN_PARTS):  # part b's entries of tile t follow the earlier parts'
+            cursor[b, t] = at
+            at += counts[b, t]
+            pix += pixels[b, t]
+        tile_start[t + 1] = at
+        capacity[t + 1] = capacity[t] + pix
+    tile_list = np.empty(tile_start[-1], np.int32)
+    slot_of_entry = np.empty(tile_start[-1], np.int64)
+    for b in numba.prange(_BIN_PARTS):
+        fill(front_to_back.ctypes, tiles.ctypes, emit_start.ctypes, min(n, b * part_len), min(n, (b + 1) * part_len),
+             n, n_tx, cursor[b].ctypes, tile_list.ctypes, slot_of_entry.ctypes)  # fmt: skip
+    return tile_start, tile_list, emit_start, slot_of_entry, capacity
 
 
 # The runners make one kernel call per thread on numba's own threads (a second thread pool
@@ -223,28 +282,16 @@ def backward_all(bwd, n_workers, tile_start, slot_of_entry, tile_order, tile_lis
             g5.ctypes, g6.ctypes, slots.ctypes)  # fmt: skip
 
 
-def _surfel_cols(C: int) -> int:
-    """Columns of a row of :func:`pack_surfels`' table: ``E_FEAT + C`` rounded up to 16, so
-    that each row is whole 64-byte cache lines."""
-    return -(-(K.E_FEAT + C) // 16) * 16
+# Columns of a row of the kernels' table (:func:`preprocess_all`, :func:`put_features`): the
+# entry row's E_FEAT + MAX_CHANNELS, whole 64-byte cache lines.
+SURF_COLS = -(-(K.E_FEAT + MAX_CHANNELS) // 16) * 16
 
 
 @numba.njit(parallel=True, cache=True)
-def pack_surfels(geo, Tm, nrm, box, feat, surf):
-    """``surf[s]``: what the compositing kernels read of surfel ``s``, in float32, laid out as
-    ``_kernels.gather_entries``' entry rows (``GEO_*``, ``E_*``). One row per surfel, read through
-    the tile lists, instead of one per (tile, surfel) entry: 2.1x fewer rows to write, and the
-    kernels prefetch the rows they will read next."""
-    C = feat.shape[1]
-    for s in numba.prange(geo.shape[0]):
-        for k in range(K.GEO_SIZE):
-            surf[s, k] = geo[s, k]
-        surf[s, K.E_ZC] = Tm[s, 8]
-        for k in range(3):
-            surf[s, K.E_NRM + k] = nrm[s, k]
-        for k in range(4):
-            surf[s, K.E_BOX + k] = box[s, k]
-        for c in range(C):
+def put_features(feat, surf):
+    """The features into their columns (``E_FEAT:``) of the kernels' table."""
+    for s in numba.prange(feat.shape[0]):
+        for c in range(feat.shape[1]):
             surf[s, K.E_FEAT + c] = feat[s, c]
 
 
@@ -307,32 +354,42 @@ def depth_order(depth, radii):
 
 
 def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> cpu.Geometry:
-    """:func:`cpu.prepare` with :func:`depth_order`'s radix sort, and the tiles in one list by
-    decreasing cost (``worker_tiles``; ``worker_start`` is ``[0, n_tiles]``): the kernels' calls
-    take the next tile from a shared counter, which balances the threads better than
-    ``schedule_tiles``' fixed split (the results are the same: a tile is one call's sequential
-    pass). The numba kernels keep their fixed split, which their tests pin bit for bit."""
+    """:func:`cpu.prepare` in C++ (:func:`preprocess_all`, :func:`bin_tiles`: the same boxes,
+    lists and slots bit for bit) with :func:`depth_order`'s radix sort, the kernels' float32
+    table ``surf`` in place of ``geo``, and the tiles in one list by decreasing cost
+    (``worker_tiles``; ``worker_start`` is ``[0, n_tiles]``): the kernels' calls take the next
+    tile from a shared counter, which balances the threads better than ``schedule_tiles``' fixed
+    split (the results are the same: a tile is one call's sequential pass). The numba kernels
+    keep their fixed split, which their tests pin bit for bit."""
     P = means.shape[0]
-    Kc, Rwc, twc = cpu._camera_arrays(camera)
+    Kc, Rwc, twc = (np.ascontiguousarray(a, np.float64) for a in cpu._camera_arrays(camera))
     Tm, nrm = np.empty((P, 9), np.float32), np.empty((P, 3), np.float32)
-    geo, depth = np.empty((P, K.GEO_SIZE), np.float64), np.empty(P, np.float64)
-    box, radii, centre = np.empty((P, 4), np.int64), np.empty(P, np.int32), np.empty((P, 2), np.float32)
-    K.preprocess(
-        cpu._np(means), cpu._np(quats), cpu._np(scales), cpu._np(opacities), Kc, Rwc, twc, camera.width,
-        camera.height, camera.near, camera.far, Tm, nrm, geo, depth, box, radii, centre,
+    depth, box, radii = np.empty(P, np.float64), np.empty((P, 4), np.int64), np.empty(P, np.int32)
+    centre = np.empty((P, 2), np.float32)
+    # The table from the scratch pool, rows on cache lines; back to the pool with the geometry.
+    surf_spec = [((P, SURF_COLS), np.float32)]
+    surf_buf = cpu.SCRATCH.take("simd-surf", cpu._carve_bytes(surf_spec))
+    (surf,) = cpu._carve(surf_buf, surf_spec)
+    kernels = _kernels()
+    preprocess_all(
+        kernels["simd_preprocess"], cpu._np(means), cpu._np(quats), cpu._np(scales), cpu._np(opacities), Kc, Rwc, twc,
+        camera.width, camera.height, camera.near, camera.far, Tm, nrm, depth, box, radii, centre, surf,
     )  # fmt: skip
     n_tx, n_ty = -(-camera.width // K.TILE), -(-camera.height // K.TILE)
-    tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = K.bin_tiles(depth_order(depth, radii), box, n_tx, n_ty)
+    binned = bin_tiles(kernels["simd_bin_count"], kernels["simd_bin_fill"], depth_order(depth, radii), box, n_tx, n_ty)
+    tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = binned
     cost = np.diff(rec_tile_start).astype(np.float64) + cpu._ENTRY_COST * np.diff(tile_start)
     tile_order = np.argsort(-cost, kind="stable")
     # Room for a whole vector behind each tile's records: the kernels store 16 lanes at a
     # tile's last record, which, in a tile whose pairs fill its region, overwrote the first
     # records of the next tile when that one had been rendered first.
     rec_tile_start = rec_tile_start + RECORD_SLACK * np.arange(rec_tile_start.shape[0])
-    return cpu.Geometry(
-        Tm, nrm, geo, depth, box, radii, centre, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
-        np.array([0, tile_order.shape[0]]), tile_order, n_tx,
+    geom = cpu.Geometry(
+        Tm, nrm, None, depth, box, radii, centre, tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start,
+        np.array([0, tile_order.shape[0]]), tile_order, n_tx, surf,
     )  # fmt: skip
+    weakref.finalize(geom, cpu.SCRATCH.give, "simd-surf", surf_buf)
+    return geom
 
 
 def _ptr(a: np.ndarray) -> int:
@@ -341,8 +398,8 @@ def _ptr(a: np.ndarray) -> int:
 
 
 class SimdCompositor(cpu.Compositor):
-    """The C++ compositing kernels in :class:`cpu.Compositor`'s place: float32 surfel rows
-    (:func:`pack_surfels`) and pair records of their own layout."""
+    """The C++ set-up and compositing kernels in :class:`cpu.Compositor`'s place: float32 surfel
+    rows (``Geometry.surf``) and pair records of their own layout."""
 
     def prepare(self, means, quats, scales, opacities, camera):
         return prepare(means, quats, scales, opacities, camera)
@@ -358,25 +415,25 @@ class SimdCompositor(cpu.Compositor):
         n_rec, n_pairs = int(geom.rec_tile_start[-1]), geom.num_pairs
         specs = [((H, W), np.float64)] * 5 + [((H, W), np.int32)]
         specs += [((n_rec,), f32)] * 2 + [((n_pairs * K.TILE * RMASK_FIELDS,), np.uint16)]
-        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64), ((geom.Tm.shape[0], _surfel_cols(C)), f32)]
+        specs += [((n_pairs,), np.int64), ((n_pairs,), np.int64)]
         scratch = cpu.SCRATCH.take("simd-forward", cpu._carve_bytes(specs))
         weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
-        *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf = cpu._carve(scratch, specs)
-        pack_surfels(geom.geo, geom.Tm, geom.nrm, geom.box, feat, surf)
-        fwd, _ = _kernels()
+        *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count = cpu._carve(scratch, specs)
+        put_features(feat, geom.surf)
         forward_all(
-            fwd, numba.get_num_threads(), geom.tile_start, geom.worker_tiles, geom.tile_list, surf, C, Rwc, W, H, geom.n_tx, camera.near,
-            camera.far, depth_eps, *maps, *aux, med_local, geom.rec_tile_start, rec_T, rec_A, rmask, rec_start, rec_count,
+            _kernels()["simd_forward"], numba.get_num_threads(), geom.tile_start, geom.worker_tiles, geom.tile_list,
+            geom.surf, C, Rwc, W, H, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, med_local,
+            geom.rec_tile_start, rec_T, rec_A, rmask, rec_start, rec_count,
         )  # fmt: skip
-        return maps, (aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc)
+        return maps, (aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, Rwc)
 
     def backward(self, geom, camera, depth_eps, feat, state, grads, slots):
-        aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, surf, Rwc = state
-        _, bwd = _kernels()
+        aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, Rwc = state
         backward_all(
-            bwd, numba.get_num_threads(), geom.tile_start, geom.slot_of_entry, geom.worker_tiles, geom.tile_list, surf,
-            feat.shape[1], Rwc, camera.width, camera.height, geom.n_tx, camera.near, camera.far, depth_eps, *aux,
-            med_local, rec_T, rec_A, rmask, rec_start, rec_count, *grads, slots,
+            _kernels()["simd_backward"], numba.get_num_threads(), geom.tile_start, geom.slot_of_entry,
+            geom.worker_tiles, geom.tile_list, geom.surf, feat.shape[1], Rwc, camera.width, camera.height, geom.n_tx,
+            camera.near, camera.far, depth_eps, *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count, *grads,
+            slots,
         )  # fmt: skip
 
 
@@ -386,7 +443,7 @@ SIMD = SimdCompositor()
 def render(
     means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera, depth_eps: float
 ) -> tuple[list[Tensor], Tensor, Tensor, cpu.Geometry]:
-    """:func:`cpu.render` with the C++ compositing kernels; float32 tensors, at most
+    """:func:`cpu.render` with the C++ kernels; float32 tensors, at most
     :data:`MAX_CHANNELS` feature channels. Raises :class:`SimdUnavailable` if they cannot
     be built, ``ValueError`` on other input."""
     reason = unsuited(means, colors)
