@@ -724,11 +724,57 @@ inline vd lane_sqrt(vd a) {
 #define NO_CONTRACT __attribute__((optimize("fp-contract=off", "no-math-errno")))
 #endif
 
-NO_CONTRACT void preprocess_range(const float *means, const float *quats, const float *scales, const float *opac,
-                                  const double *K, const double *Rwc, const double *twc, int64_t width,
-                                  int64_t height, double near, double far, float *Tm, float *nrm, double *depth,
-                                  int64_t *box, int32_t *radii, float *centre, float *surf, int64_t surf_cols,
-                                  int64_t begin, int64_t end) {
+}  // namespace
+
+extern "C" {
+
+#define CHANNELS(F) F(1) F(2) F(3) F(4) F(5) F(6) F(7) F(8)
+
+void simd_forward(const int64_t *tile_start, const int64_t *tile_order, int64_t n_tiles, int64_t *next_tile, const int32_t *tile_list,
+                  const float *surf, int64_t surf_cols, int64_t C, const double *Rwc, int64_t width, int64_t height, int64_t n_tx,
+                  double near, double far, double depth_eps, float *out_feat, float *out_alpha, float *out_depth,
+                  float *out_med, float *out_ncam, float *out_nworld, float *out_dist, double *aux_T, double *aux_D,
+                  double *aux_W, double *aux_M1, double *aux_M2, int32_t *med_local, const int64_t *rec_tile_start,
+                  float *rec_T, float *rec_A, uint16_t *rmask, int64_t *rec_start, int64_t *rec_count) {
+    switch (C) {
+#define CASE(c)                                                                                                     \
+    case c:                                                                                                         \
+        return forward_tiles<c>(tile_start, tile_order, n_tiles, next_tile, tile_list, surf, surf_cols, Rwc, width, height, n_tx, near, \
+                                far, depth_eps, out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld,     \
+                                out_dist, aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec_tile_start, rec_T,   \
+                                rec_A, rmask, rec_start, rec_count);
+        CHANNELS(CASE)
+#undef CASE
+    }
+}
+
+void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, const int64_t *tile_order, int64_t n_tiles,
+                   int64_t *next_tile, const int32_t *tile_list, const float *surf, int64_t surf_cols, int64_t C, const double *Rwc, int64_t width,
+                   int64_t height, int64_t n_tx, double near, double far, double depth_eps, const double *aux_T,
+                   const double *aux_D, const double *aux_W, const double *aux_M1, const double *aux_M2,
+                   const int32_t *med_local, const float *rec_T, const float *rec_A, const uint16_t *rmask,
+                   const int64_t *rec_start, const int64_t *rec_count, const float *g_feat, const float *g_alpha,
+                   const float *g_depth, const float *g_med, const float *g_ncam, const float *g_nworld,
+                   const float *g_dist, double *slots) {
+    switch (C) {
+#define CASE(c)                                                                                                      \
+    case c:                                                                                                          \
+        return backward_tiles<c>(tile_start, slot_of_entry, tile_order, n_tiles, next_tile, tile_list, surf, surf_cols, Rwc, width,       \
+                                 height, n_tx, near, far, depth_eps, aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, \
+                                 rec_T, rec_A, rmask, rec_start, rec_count, g_feat, g_alpha, g_depth, g_med, g_ncam, \
+                                 g_nworld, g_dist, slots);
+        CHANNELS(CASE)
+#undef CASE
+    }
+}
+
+// ``_kernels.preprocess`` on surfels [begin, end), with each surfel's float32 row of the kernels'
+// table (the caller runs one call per chunk of surfels, one per thread at a time).
+NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const float *scales, const float *opac,
+                                 const double *K, const double *Rwc, const double *twc, int64_t width,
+                                 int64_t height, double near, double far, float *Tm, float *nrm, double *depth,
+                                 int64_t *box, int32_t *radii, float *centre, float *surf, int64_t surf_cols,
+                                 int64_t begin, int64_t end) {
 #if defined(__clang__)
 #pragma clang fp contract(off)
 #endif
@@ -862,8 +908,11 @@ NO_CONTRACT void preprocess_range(const float *means, const float *quats, const 
 // few surfels ahead, which numba cannot ask for.
 constexpr int BIN_AHEAD = 16;
 
-void bin_count_range(const int64_t *front_to_back, const int64_t *box, int64_t begin, int64_t end, int64_t n,
-                     int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
+// ``_kernels.bin_tiles``' count over entries [begin, end) of the depth order (``n`` long): each
+// entry's tile range, its surfel's tile count, and per tile the entries and their box pixels
+// (added to ``counts`` and ``pixels``, one row per part of the order).
+void simd_bin_count(const int64_t *front_to_back, const int64_t *box, int64_t begin, int64_t end, int64_t n,
+                    int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
     for (int64_t k = begin; k < end; k++) {
         if (k + BIN_AHEAD < n) __builtin_prefetch(box + front_to_back[k + BIN_AHEAD] * 4);
         const int64_t s = front_to_back[k];
@@ -885,9 +934,10 @@ void bin_count_range(const int64_t *front_to_back, const int64_t *box, int64_t b
     }
 }
 
-void bin_fill_range(const int64_t *front_to_back, const int32_t *tiles, const int64_t *emit_start, int64_t begin,
-                    int64_t end, int64_t n, int64_t n_tx, int64_t *cursor, int32_t *tile_list,
-                    int64_t *slot_of_entry) {
+// Its fill: each entry's surfel and gradient slot at its tile's ``cursor`` (advanced).
+void simd_bin_fill(const int64_t *front_to_back, const int32_t *tiles, const int64_t *emit_start, int64_t begin,
+                   int64_t end, int64_t n, int64_t n_tx, int64_t *cursor, int32_t *tile_list,
+                   int64_t *slot_of_entry) {
     for (int64_t k = begin; k < end; k++) {
         if (k + BIN_AHEAD < n) __builtin_prefetch(emit_start + front_to_back[k + BIN_AHEAD]);
         const int64_t s = front_to_back[k];
@@ -900,74 +950,6 @@ void bin_fill_range(const int64_t *front_to_back, const int32_t *tiles, const in
                 slot_of_entry[j] = slot++;
             }
     }
-}
-
-}  // namespace
-
-extern "C" {
-
-#define CHANNELS(F) F(1) F(2) F(3) F(4) F(5) F(6) F(7) F(8)
-
-void simd_forward(const int64_t *tile_start, const int64_t *tile_order, int64_t n_tiles, int64_t *next_tile, const int32_t *tile_list,
-                  const float *surf, int64_t surf_cols, int64_t C, const double *Rwc, int64_t width, int64_t height, int64_t n_tx,
-                  double near, double far, double depth_eps, float *out_feat, float *out_alpha, float *out_depth,
-                  float *out_med, float *out_ncam, float *out_nworld, float *out_dist, double *aux_T, double *aux_D,
-                  double *aux_W, double *aux_M1, double *aux_M2, int32_t *med_local, const int64_t *rec_tile_start,
-                  float *rec_T, float *rec_A, uint16_t *rmask, int64_t *rec_start, int64_t *rec_count) {
-    switch (C) {
-#define CASE(c)                                                                                                     \
-    case c:                                                                                                         \
-        return forward_tiles<c>(tile_start, tile_order, n_tiles, next_tile, tile_list, surf, surf_cols, Rwc, width, height, n_tx, near, \
-                                far, depth_eps, out_feat, out_alpha, out_depth, out_med, out_ncam, out_nworld,     \
-                                out_dist, aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, rec_tile_start, rec_T,   \
-                                rec_A, rmask, rec_start, rec_count);
-        CHANNELS(CASE)
-#undef CASE
-    }
-}
-
-void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, const int64_t *tile_order, int64_t n_tiles,
-                   int64_t *next_tile, const int32_t *tile_list, const float *surf, int64_t surf_cols, int64_t C, const double *Rwc, int64_t width,
-                   int64_t height, int64_t n_tx, double near, double far, double depth_eps, const double *aux_T,
-                   const double *aux_D, const double *aux_W, const double *aux_M1, const double *aux_M2,
-                   const int32_t *med_local, const float *rec_T, const float *rec_A, const uint16_t *rmask,
-                   const int64_t *rec_start, const int64_t *rec_count, const float *g_feat, const float *g_alpha,
-                   const float *g_depth, const float *g_med, const float *g_ncam, const float *g_nworld,
-                   const float *g_dist, double *slots) {
-    switch (C) {
-#define CASE(c)                                                                                                      \
-    case c:                                                                                                          \
-        return backward_tiles<c>(tile_start, slot_of_entry, tile_order, n_tiles, next_tile, tile_list, surf, surf_cols, Rwc, width,       \
-                                 height, n_tx, near, far, depth_eps, aux_T, aux_D, aux_W, aux_M1, aux_M2, med_local, \
-                                 rec_T, rec_A, rmask, rec_start, rec_count, g_feat, g_alpha, g_depth, g_med, g_ncam, \
-                                 g_nworld, g_dist, slots);
-        CHANNELS(CASE)
-#undef CASE
-    }
-}
-
-// ``_kernels.preprocess`` on surfels [begin, end), with each surfel's float32 row of the kernels'
-// table (the caller runs one call per chunk of surfels, one per thread at a time).
-void simd_preprocess(const float *means, const float *quats, const float *scales, const float *opac, const double *K,
-                     const double *Rwc, const double *twc, int64_t width, int64_t height, double near, double far,
-                     float *Tm, float *nrm, double *depth, int64_t *box, int32_t *radii, float *centre, float *surf,
-                     int64_t surf_cols, int64_t begin, int64_t end) {
-    preprocess_range(means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, depth, box, radii,
-                     centre, surf, surf_cols, begin, end);
-}
-
-// ``_kernels.bin_tiles``' count over entries [begin, end) of the depth order (``n`` long): each
-// entry's tile range, its surfel's tile count, and per tile the entries and their box pixels
-// (added to ``counts`` and ``pixels``, one row per part of the order).
-void simd_bin_count(const int64_t *front_to_back, const int64_t *box, int64_t begin, int64_t end, int64_t n,
-                    int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
-    bin_count_range(front_to_back, box, begin, end, n, n_tx, tiles, per_surfel, counts, pixels);
-}
-
-// Its fill: each entry's surfel and gradient slot at its tile's ``cursor`` (advanced).
-void simd_bin_fill(const int64_t *front_to_back, const int32_t *tiles, const int64_t *emit_start, int64_t begin,
-                   int64_t end, int64_t n, int64_t n_tx, int64_t *cursor, int32_t *tile_list, int64_t *slot_of_entry) {
-    bin_fill_range(front_to_back, tiles, emit_start, begin, end, n, n_tx, cursor, tile_list, slot_of_entry);
 }
 
 // The kernels' exp on n floats (tested against numpy's).
