@@ -304,6 +304,74 @@ def test_depth_normal_loss_gradient_is_finite_where_the_normal_vanishes():
     assert float(loss.detach()) == 1.0 and torch.isfinite(depth.grad).all()
 
 
+def _layouts(base: torch.Tensor):
+    """``base`` ``(H, W, 3)`` as a ``(3, H, W)`` leaf: the renders' permuted view and a contiguous copy."""
+    leaf = base.clone().requires_grad_(True)
+    yield leaf, leaf.permute(2, 0, 1)
+    leaf = base.permute(2, 0, 1).contiguous().requires_grad_(True)
+    yield leaf, leaf
+
+
+@pytest.mark.parametrize("shape", [(120, 160), (7, 9), (3, 3), (2, 5)])
+def test_depth_normal_kernels_are_the_torch_composition_bit_for_bit(shape):
+    """L_dn's CPU kernels against its torch composition: value, normal and depth gradients to
+    the last bit, with pixels of no depth, flat patches and zero normals in the maps."""
+    from pipeline.losses.normal import _depth_normal_loss_torch
+
+    H, W = shape
+    g = torch.Generator().manual_seed(5)
+    K = torch.tensor([[0.75 * W, 0.0, W / 2 - 0.5], [0.0, 0.78 * W, H / 2 - 0.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    depth0 = 2.0 + 0.3 * torch.rand(H, W, generator=g)
+    depth0[1:3, 1:4] = 0.0
+    depth0[-3:, -2:] = 2.0
+    base = torch.randn(H, W, 3, generator=g)
+    base[:2, :2] = 0.0
+    alpha = torch.rand(H, W, generator=g)
+    for fn in (depth_normal_loss, _depth_normal_loss_torch):
+        results = []
+        for leaf, normal in _layouts(base):
+            depth = depth0.clone().requires_grad_(True)
+            loss = fn(normal, depth, alpha, K)
+            assert ("_DepthNormalOnCPU" in type(loss.grad_fn).__name__) == (fn is depth_normal_loss and min(H, W) >= 3)
+            (0.37 * loss).backward()
+            results.append((loss.detach(), leaf.grad if leaf.shape[-1] == 3 else leaf.grad.permute(1, 2, 0), depth.grad))
+        if fn is depth_normal_loss:
+            kernels = results
+    for got, want in zip(kernels, results):
+        for a, b in zip(got, want):
+            assert torch.equal(a, b)
+    if H > 5:
+        assert kernels[0][1].abs().max() > 0 and kernels[0][2].abs().max() > 0
+
+
+@pytest.mark.parametrize("shape", [(120, 160), (7, 9), (2, 5), (1, 4)])
+def test_normal_smoothness_kernels_are_the_torch_composition_bit_for_bit(shape):
+    """L_smooth's CPU kernels against its torch composition, in both layouts the kernels take
+    (torch sums the squares differently in each): value and gradient to the last bit, zero
+    normals and masked pixels included."""
+    from pipeline.losses.smoothness import _normal_smoothness_torch
+
+    H, W = shape
+    g = torch.Generator().manual_seed(6)
+    base = torch.randn(H, W, 3, generator=g)
+    base[:1, :2] = 0.0
+    base[-1, -1] = 1e-13  # below F.normalize's eps: the clamp passes no gradient
+    image = torch.rand(3, H, W, generator=g)
+    valid = torch.rand(H, W, generator=g) > 0.3
+    for leaf_k, normal_k in _layouts(base):
+        loss_k = normal_smoothness_loss(normal_k, image, valid, 10.0)
+        assert ("_SmoothnessOnCPU" in type(loss_k.grad_fn).__name__) == (H >= 2 and W >= 2)
+        (0.41 * loss_k).backward()
+        leaf_t = leaf_k.detach().clone().requires_grad_(True)
+        normal_t = leaf_t.permute(2, 0, 1) if leaf_t.shape[-1] == 3 else leaf_t
+        loss_t = _normal_smoothness_torch(normal_t, image, valid, 10.0)
+        (0.41 * loss_t).backward()
+        assert torch.equal(loss_k.detach(), loss_t.detach())
+        assert torch.equal(leaf_k.grad, leaf_t.grad)
+        if H * W > 10:
+            assert loss_k > 0 and leaf_k.grad.abs().max() > 0
+
+
 def test_mask_loss():
     alpha = torch.tensor([[0.2, 0.9]], requires_grad=True)
     mask = torch.tensor([[False, True]])

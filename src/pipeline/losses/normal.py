@@ -1,13 +1,16 @@
 """Normal terms: GCGS normal-prior consistency L_nor (Eq. 10-12: L_nc and L_ngc, see
 docs/priors.md) and 2DGS depth-normal consistency. Differentiable torch functions; any
 float dtype. Normal maps are ``(3, H, W)`` in the OpenCV camera frame, facing the camera
-(``n . ray < 0``); depth maps ``(H, W)`` camera-frame z.
+(``n . ray < 0``); depth maps ``(H, W)`` camera-frame z. On the CPU in float32, L_dn's
+per-pixel work runs in :mod:`._dn_kernels` (torch's value and gradients bit for bit).
 """
 from __future__ import annotations
 
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from pipeline.losses import _dn_kernels
 
 _SOBEL_X = np.array([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]]) / 8.0
 
@@ -85,6 +88,45 @@ def depth_normal_loss(normal_render: torch.Tensor, depth: torch.Tensor, alpha: t
     """2DGS depth-normal consistency: mean over pixels of ``1 - n_render . (N_d alpha)``,
     with ``normal_render`` the alpha-blended (not renormalised) normal and ``N_d`` the
     normal of the rendered depth, weighted by the detached alpha."""
+    maps = (normal_render, depth, alpha)
+    H, W = depth.shape
+    if all(t.device.type == "cpu" and t.dtype == torch.float32 for t in maps) and H >= 3 and W >= 3:
+        return _DepthNormalOnCPU.apply(normal_render, depth, alpha.detach(), torch.linalg.inv(K.to(depth.dtype)))
+    return _depth_normal_loss_torch(normal_render, depth, alpha, K)
+
+
+class _DepthNormalOnCPU(torch.autograd.Function):
+    """L_dn through :mod:`._dn_kernels`; the mean over the map stays torch's."""
+
+    @staticmethod
+    def forward(ctx, normal_render, depth, alpha, Kinv):
+        H, W = depth.shape
+        arrays = (depth.detach().contiguous().numpy(), normal_render.detach().permute(1, 2, 0).numpy(),
+                  alpha.contiguous().numpy(), Kinv.contiguous().numpy())
+        points, n_depth = np.empty((3, H, W), np.float32), np.empty((3, H, W), np.float32)
+        inv, cross = np.empty((H - 2, W - 2), np.float32), np.empty((3, H - 2, W - 2), np.float32)
+        out = np.empty((H, W), np.float32)
+        _dn_kernels.forward(*arrays, points, n_depth, inv, cross, out)
+        ctx.save_for_backward(normal_render, depth)
+        ctx.kernel_state = (arrays, points, n_depth, inv, cross)
+        return torch.from_numpy(out).mean()
+
+    @staticmethod
+    def backward(ctx, grad):
+        ctx.saved_tensors  # torch's check that the maps were not changed in place
+        arrays, points, n_depth, inv, cross = ctx.kernel_state
+        H, W = arrays[0].shape
+        g_mean = np.float32((grad / (H * W)).item())
+        g_normal, g_depth = np.empty((H, W, 3), np.float32), np.empty((H, W), np.float32)
+        g_a, g_b = np.empty((3, H - 2, W - 2), np.float32), np.empty((3, H - 2, W - 2), np.float32)
+        _dn_kernels.backward(*arrays, points, n_depth, inv, cross, g_mean, g_normal, g_a, g_b, g_depth)
+        return torch.from_numpy(g_normal).permute(2, 0, 1), torch.from_numpy(g_depth), None, None
+
+
+def _depth_normal_loss_torch(normal_render: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor,
+                             K: torch.Tensor) -> torch.Tensor:
+    """:func:`depth_normal_loss` composed of torch operations: the reference of the kernels,
+    and the path off the CPU and in other dtypes."""
     n_d = depth_to_normals(depth, K)
     dot = normal_render[0] * n_d[0] + normal_render[1] * n_d[1] + normal_render[2] * n_d[2]
     return (1.0 - dot * alpha.detach()).mean()

@@ -1,11 +1,15 @@
 """The edge-aware normal smoothness term L_smooth and the flat-image pixels it is taken on.
 Torch, differentiable, any float dtype; normal maps ``(3, H, W)`` in the OpenCV camera frame,
-images ``(C, H, W)``.
+images ``(C, H, W)``. On the CPU in float32, L_smooth's per-pixel work runs in
+:mod:`._smooth_kernels` (torch's value and gradient bit for bit).
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+
+from pipeline.losses import _smooth_kernels
 
 def flat_pixels(image: torch.Tensor, max_std: float, window: int = 5) -> torch.Tensor:
     """``(H, W)`` bool: pixels whose ``window`` x ``window`` grey std (channel mean of
@@ -25,8 +29,71 @@ def normal_smoothness_loss(normal: torch.Tensor, image: torch.Tensor, valid: tor
     ``|I_p - I_q|`` the mean absolute difference over the channels), so normals agree where
     the image is flat and may turn at image edges. ``normal``: ``(3, H, W)``; ``image``:
     ``(C, H, W)``; ``valid``: ``(H, W)`` bool. 0 (connected to ``normal``) without pairs."""
-    n = F.normalize(normal, dim=0)
     image = image.detach()
+    fma = _kernel_layout(normal)
+    if fma is None:
+        return _normal_smoothness_torch(normal, image, valid, gamma)
+    weights, pairs = [], []
+    for dim in (1, 2):
+        size = normal.shape[dim] - 1
+        pairs.append(valid.narrow(dim - 1, 0, size) & valid.narrow(dim - 1, 1, size))
+        edge = (image.narrow(dim, 0, size) - image.narrow(dim, 1, size)).abs().mean(0)
+        weights.append(torch.exp(-gamma * edge))
+    count = int(pairs[0].sum()) + int(pairs[1].sum())
+    return _SmoothnessOnCPU.apply(normal, *weights, *pairs, count, fma)
+
+
+def _kernel_layout(normal: torch.Tensor) -> bool | None:
+    """Whether the kernels take ``normal`` and how torch sums its squares: ``True`` for the
+    renders' ``(H, W, 3)`` seen as ``(3, H, W)`` (fused multiply-adds), ``False`` for a
+    contiguous ``(3, H, W)``, ``None`` for the torch composition (another device, dtype or
+    layout, or a map under 2 x 2)."""
+    if normal.device.type != "cpu" or normal.dtype != torch.float32 or normal.dim() != 3 or normal.shape[0] != 3:
+        return None
+    _, H, W = normal.shape
+    if H < 2 or W < 2:
+        return None
+    if normal.stride() == (1, 3 * W, 3):
+        return True
+    return False if normal.is_contiguous() else None
+
+
+class _SmoothnessOnCPU(torch.autograd.Function):
+    """L_smooth through :mod:`._smooth_kernels`; the sums over the map stay torch's."""
+
+    @staticmethod
+    def forward(ctx, normal, weight_v, weight_h, pairs_v, pairs_h, count, fma):
+        x = normal.detach().permute(1, 2, 0).numpy()
+        H, W = x.shape[:2]
+        clamped, unit = np.empty((H, W), np.float32), np.empty((H, W, 3), np.float32)
+        cost_v, cost_h = np.empty((H - 1, W), np.float32), np.empty((H, W - 1), np.float32)
+        maps = tuple(t.contiguous().numpy() for t in (weight_v, weight_h, pairs_v, pairs_h))
+        _smooth_kernels.forward(x, *maps, fma, clamped, unit, cost_v, cost_h)
+        total = normal.detach().sum() * 0.0
+        total = total + torch.from_numpy(cost_v).sum()
+        total = total + torch.from_numpy(cost_h).sum()
+        ctx.save_for_backward(normal)
+        ctx.kernel_state = (maps, fma, clamped, unit, count)
+        return total / max(count, 1)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (normal,) = ctx.saved_tensors
+        maps, fma, clamped, unit, count = ctx.kernel_state
+        x = normal.detach().permute(1, 2, 0).numpy()
+        H, W = x.shape[:2]
+        g_pair = np.float32((grad / max(count, 1)).item())
+        g_v, g_h = np.empty((H - 1, W, 3), np.float32), np.empty((H, W - 1, 3), np.float32)
+        g_x = np.empty((H, W, 3), np.float32)
+        _smooth_kernels.backward(x, *maps, fma, clamped, unit, g_pair, g_v, g_h, g_x)
+        return torch.from_numpy(g_x).permute(2, 0, 1), None, None, None, None, None, None
+
+
+def _normal_smoothness_torch(normal: torch.Tensor, image: torch.Tensor, valid: torch.Tensor,
+                             gamma: float) -> torch.Tensor:
+    """:func:`normal_smoothness_loss` composed of torch operations: the reference of the
+    kernels, and the path off the CPU and in other dtypes."""
+    n = F.normalize(normal, dim=0)
     total, count = normal.sum() * 0.0, 0
     for dim in (1, 2):
         size = n.shape[dim] - 1
