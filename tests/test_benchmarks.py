@@ -119,7 +119,7 @@ def test_bench_train(tmp_path, bundled_scan):
     split = rep["split_s_per_iteration"]
     assert rep["s_per_iteration"] > 0 and rep["surfels"] > 0 and rep["from_iteration"] == 400
     assert split["raster forward kernel"] > 0 and split["torch autograd (loss terms' backward)"] > 0
-    assert split["loss kernels (L_mv's patches, warp and NCC; SSIM's blur)"] > 0  # L_mv is on at 400
+    assert split["loss kernels (L_mv's patches, warp and NCC; SSIM's blur; L_smooth; L_dn)"] > 0  # L_mv is on at 400
     assert sum(split.values()) == pytest.approx(rep["s_per_iteration"], rel=0.01, abs=1e-3)
     assert "| raster forward kernel |" in out.with_suffix(".md").read_text()
 
@@ -146,3 +146,30 @@ def test_a_bench_refuses_a_foreign_report_before_its_work(tmp_path, monkeypatch,
     assert cli.main([*argv, *out]) != 0
     assert "was not written by gcgs" in capsys.readouterr().err
     assert (tmp_path / report).read_text() == "someone's notes\n"
+
+
+def test_bench_train_counts_the_smoothness_and_depth_normal_kernels():
+    """L_smooth's and L_dn's numba kernels are loss kernels in the split, not the rest."""
+    import cProfile
+    import pstats
+
+    import torch
+
+    from pipeline.benchmarks.training import LOSS_KERNELS, split_profile
+    from pipeline.losses import depth_normal_loss, normal_smoothness_loss
+
+    def both():
+        normal = torch.randn(48, 64, 3, requires_grad=True)
+        depth = (2.0 + torch.rand(48, 64)).requires_grad_(True)
+        K = torch.tensor([[50.0, 0.0, 31.5], [0.0, 50.0, 23.5], [0.0, 0.0, 1.0]])
+        n = normal.permute(2, 0, 1)
+        loss = normal_smoothness_loss(n, torch.rand(3, 48, 64), torch.ones(48, 64, dtype=torch.bool), 10.0)
+        (loss + depth_normal_loss(n, depth, torch.rand(48, 64), K)).backward()
+
+    both()  # compiled or loaded from numba's cache outside the profile
+    profiler = cProfile.Profile()
+    profiler.enable()
+    both()
+    profiler.disable()
+    split = split_profile(pstats.Stats(profiler), 1.0)
+    assert split[LOSS_KERNELS] > 0

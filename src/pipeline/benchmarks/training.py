@@ -46,7 +46,7 @@ KERNELS = {
         "simd.preprocess_all", "simd.depth_order", "simd.bin_tiles",
     ),
 }
-LOSS_KERNELS = "loss kernels (L_mv's patches, warp and NCC; SSIM's blur)"
+LOSS_KERNELS = "loss kernels (L_mv's patches, warp and NCC; SSIM's blur; L_smooth; L_dn)"
 AUTOGRAD = "torch autograd (loss terms' backward)"
 LOSS_FORWARD = "loss terms' forward (torch)"
 REST = "rest (optimizer, densification, wrappers, loop)"
@@ -59,6 +59,10 @@ _LOSS_KERNEL_FUNCS = {
     ("losses/_mv_kernels.py", "textured_grid"): True,
     ("losses/_mv_kernels.py", "warp_ncc_backward"): False,
     ("losses/_blur_kernels.py", "gaussian_blur"): None,
+    ("losses/_smooth_kernels.py", "forward"): True,
+    ("losses/_smooth_kernels.py", "backward"): False,
+    ("losses/_dn_kernels.py", "forward"): True,
+    ("losses/_dn_kernels.py", "backward"): False,
 }
 
 
