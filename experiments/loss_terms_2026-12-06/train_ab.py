@@ -1,25 +1,21 @@
-"""A `fast` training of SCENE with L_smooth and L_dn from torch or from the prototype kernels (smooth_kernel.py, dn_kernel.py): the
-parameters saved to OUT, the wall time and the trainer's split printed. Run from the checkout:
-python experiments/loss_terms_2026-12-06/train_ab.py torch|kernels SCENE OUT.pt"""
-import sys, time, importlib, importlib.util, torch
+"""A `fast` training of SCENE with L_smooth and L_dn from the library (on the CPU its kernels,
+``losses._smooth_kernels`` / ``_dn_kernels``) or from the torch compositions beside them: the
+parameters saved to OUT, the loop's wall time and the trainer's split printed. Run from the
+checkout: python experiments/loss_terms_2026-12-06/train_ab.py torch|kernels SCENE OUT.pt
+(The prototypes' version of this script, which patched them in, is in git history: 04d6c2b.)"""
+import sys, time, importlib, torch
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
 from pipeline.config.params import load_params, section
 from pipeline.rasterizer import resolve_backend
 from pipeline.runs.optimize import load_training_inputs
+from pipeline.losses.smoothness import _normal_smoothness_torch
+from pipeline.losses.normal import _depth_normal_loss_torch
 T = importlib.import_module("pipeline.optimize.train")
 mode, scene, out = sys.argv[1], sys.argv[2], sys.argv[3]
-if mode == "kernels":  # both prototypes in the torch terms' places, compiled before the timed steps
-    spec = importlib.util.spec_from_file_location("sk", "experiments/loss_terms_2026-12-06/smooth_kernel.py")
-    sk = importlib.util.module_from_spec(spec); spec.loader.exec_module(sk)
-    T.normal_smoothness_loss = sk.smooth_fused
-    spec = importlib.util.spec_from_file_location("dk", "experiments/loss_terms_2026-12-06/dn_kernel.py")
-    dk = importlib.util.module_from_spec(spec); spec.loader.exec_module(dk)
-    T.depth_normal_loss = dk.dn_fused
-    _n = torch.randn(8, 8, 3, requires_grad=True).permute(2, 0, 1)
-    dk.dn_fused(_n, torch.rand(8, 8, requires_grad=True) + 1, torch.rand(8, 8), torch.eye(3)).backward()
-    _n = torch.randn(8, 8, 3, requires_grad=True).permute(2, 0, 1)  # compile the kernels (the renders' layout) outside the timed steps
-    sk.smooth_fused(_n, torch.rand(3, 8, 8), torch.ones(8, 8, dtype=torch.bool), 10.0).backward()
+if mode == "torch":
+    T.normal_smoothness_loss = lambda n, i, v, g: _normal_smoothness_torch(n, i.detach(), v, g)
+    T.depth_normal_loss = _depth_normal_loss_torch
 params = load_params("params.yaml")
 cfg, loss = section(OptimizeConfig, "optimize", params), section(LossConfig, "loss", params)
 _, p, views = load_training_inputs(f"data/scenes/{scene}", f"data/init/{scene}", f"data/priors/{scene}", cfg, loss)
