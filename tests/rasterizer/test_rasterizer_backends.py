@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import numba
+import numpy as np
 import pytest
 import torch
 from raster_helpers import MAPS, PARAMS, random_camera, random_surfels, render_and_grads, with_grad
@@ -149,6 +150,30 @@ def test_radii_mark_visible_surfels():
     assert out.radii.dtype == torch.int32
     assert out.radii[0] == 0 and out.radii[1] == 0
     assert (out.radii[2:] > 0).float().mean() > 0.8
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_the_chain_rule_writes_zeros_for_surfels_never_drawn(dtype):
+    """``reduce_and_chain`` fills every row of its outputs (the backward hands it
+    uninitialised arrays): zeros for a surfel without slots, its gradient for the others."""
+    from pipeline.rasterizer import _kernels as K
+
+    rng = np.random.default_rng(0)
+    P, C = 600, 3
+    emit_start = np.concatenate([[0], np.cumsum(rng.integers(0, 3, P))]).astype(np.int64)  # ~1/3 never drawn
+    slots = rng.standard_normal((emit_start[-1], K.S_FIXED + C))
+    quats = rng.standard_normal((P, 4)).astype(dtype)
+    scales, means = rng.uniform(0.1, 1.0, (P, 2)).astype(dtype), rng.standard_normal((P, 3)).astype(dtype)
+    Tm, nrm = rng.standard_normal((P, 9)).astype(dtype), rng.standard_normal((P, 3)).astype(dtype)
+    Tm[:, 8] = rng.uniform(1.0, 2.0, P)
+    shapes = [(P, 3), (P, 4), (P, 2), (P,), (P, C), (P, 2)]
+    out = [np.full(shape, np.nan, dtype) for shape in shapes]
+    K.reduce_and_chain(emit_start, slots, quats, scales, means, Tm, nrm, np.eye(3) * 50.0, np.eye(3), *out)
+    never = np.diff(emit_start) == 0
+    assert 100 < never.sum() < P - 100
+    for o in out:
+        assert (o[never] == 0).all() and np.isfinite(o[~never]).all()
+        assert (o[~never] != 0).any(axis=tuple(range(1, o.ndim))).mean() > 0.9
 
 
 def test_tile_lists_are_front_to_back_with_ties_in_id_order():

@@ -126,6 +126,10 @@ def _prepare_cases():
             s.opacities.data[:10] = 0.0
             s.opacities.data[10:20] = 1e-3
             s.means.data[20:30, 2] *= -1.0
+            # around the opacity from which the set-up takes the cap 9 without the log
+            # (exp(4.5) / 255 = 0.353008; the C++ skips the log from 0.3532)
+            near_cap = [0.3501, 0.352, 0.3530, 0.35300836, 0.3530084, 0.3531, 0.35319998, 0.3532, 0.35320002, 0.36]
+            s.opacities.data[30:40] = torch.tensor(near_cap)
         yield s, cam
 
 
@@ -138,7 +142,7 @@ def test_prepare_is_the_cpu_backends_bit_for_bit(case):
     from pipeline.rasterizer import _kernels as K
 
     s, cam = list(_prepare_cases())[case]
-    a = simd.prepare(s.means, s.quats, s.scales, s.opacities, cam)
+    a = simd.prepare(s.means, s.quats, s.scales, s.opacities, s.features, cam)
     b = cpu.prepare(s.means, s.quats, s.scales, s.opacities, cam)
     if case == 3:
         assert (b.radii == 0).sum() >= 10, "the undrawn surfels' rows are compared too"
@@ -148,6 +152,8 @@ def test_prepare_is_the_cpu_backends_bit_for_bit(case):
         assert x.tobytes() == y.tobytes(), k
     expected = np.concatenate([b.geo.astype(np.float32), b.Tm[:, 8:9], b.nrm, b.box.astype(np.float32)], axis=1)
     assert a.surf[:, : K.E_FEAT].tobytes() == expected.tobytes()
+    C = s.features.shape[1]
+    assert a.surf[:, K.E_FEAT : K.E_FEAT + C].tobytes() == s.features.numpy().tobytes(), "the features in the rows"
     # each tile's record region as the cpu backend's, with room for one vector behind it
     slack = simd.RECORD_SLACK * np.arange(b.rec_tile_start.shape[0])
     np.testing.assert_array_equal(a.rec_tile_start, b.rec_tile_start + slack)
@@ -159,7 +165,7 @@ def test_prepare_is_the_cpu_backends_bit_for_bit(case):
 def _entry_spans(s: Surfels, cam: Camera) -> tuple[np.ndarray, np.ndarray]:
     """First and last tile column (0-15) of each (tile, surfel) entry's box in its tile."""
     with torch.no_grad():
-        g = simd.prepare(s.means, s.quats, s.scales, s.opacities, cam)
+        g = simd.prepare(s.means, s.quats, s.scales, s.opacities, s.features, cam)
     tile = np.repeat(np.arange(g.tile_start.shape[0] - 1), np.diff(g.tile_start))
     x0 = (tile % g.n_tx) * 16
     box = g.box[g.tile_list]
@@ -404,3 +410,11 @@ def test_an_unwritable_cache_folder_moves_on_to_the_next(tmp_path, monkeypatch):
     finally:
         simd._state.clear()
         simd._state.update(saved)
+
+
+def test_kernel_functions_are_typed_once():
+    """numba types a kernel argument from its cached type, not a new one per call."""
+    from numba import typeof
+
+    k = simd._kernels()["simd_forward"]
+    assert typeof(k) is k.numba_type and typeof(k) is typeof(k)

@@ -67,7 +67,7 @@ KERNEL_PARTS = {  # part of a render -> the kernels it runs (numba's in _kernels
         "preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles",
         "simd.preprocess_all", "simd.depth_order", "simd.bin_tiles",
     ),
-    "forward compositing": ("gather_entries", "forward", "simd.put_features", "simd.forward_all"),
+    "forward compositing": ("gather_entries", "forward", "simd.forward_all"),
     "backward compositing": ("backward", "simd.backward_all"),
     "per-surfel reduction": ("reduce_and_chain",),
 }

@@ -39,7 +39,7 @@ from pipeline.measure import provenance
 # category -> the rasterizer's kernels in it (cProfile's own time): the numba kernels of the
 # cpu backend and the simd backend's C++ runners (``simd.NAME``, see bench-raster's KERNEL_PARTS).
 KERNELS = {
-    "raster forward kernel": ("forward", "simd.put_features", "simd.forward_all"),
+    "raster forward kernel": ("forward", "simd.forward_all"),
     "raster backward kernels": ("backward", "simd.backward_all", "reduce_and_chain"),
     "raster set-up and binning": (
         "preprocess", "break_depth_ties", "bin_tiles", "schedule_tiles",

@@ -113,7 +113,7 @@ class _DepthNormalOnCPU(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, grad):
-        ctx.saved_tensors  # torch's check that the maps were not changed in place
+        _ = ctx.saved_tensors  # torch's check that the maps were not changed in place
         arrays, points, n_depth, inv, cross = ctx.kernel_state
         H, W = arrays[0].shape
         g_mean = np.float32((grad / (H * W)).item())

@@ -33,14 +33,20 @@ def normal_smoothness_loss(normal: torch.Tensor, image: torch.Tensor, valid: tor
     fma = _kernel_layout(normal)
     if fma is None:
         return _normal_smoothness_torch(normal, image, valid, gamma)
-    weights, pairs = [], []
-    for dim in (1, 2):
-        size = normal.shape[dim] - 1
-        pairs.append(valid.narrow(dim - 1, 0, size) & valid.narrow(dim - 1, 1, size))
-        edge = (image.narrow(dim, 0, size) - image.narrow(dim, 1, size)).abs().mean(0)
-        weights.append(torch.exp(-gamma * edge))
-    count = int(pairs[0].sum()) + int(pairs[1].sum())
-    return _SmoothnessOnCPU.apply(normal, *weights, *pairs, count, fma)
+    (pairs_v, weight_v), (pairs_h, weight_h) = (_pairs_and_weights(image, valid, gamma, dim) for dim in (1, 2))
+    count = int(pairs_v.sum()) + int(pairs_h.sum())
+    return _SmoothnessOnCPU.apply(normal, weight_v, weight_h, pairs_v, pairs_h, count, fma)
+
+
+def _pairs_and_weights(
+    image: torch.Tensor, valid: torch.Tensor, gamma: float, dim: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Along ``dim`` of a ``(C, H, W)`` map (1: vertical, 2: horizontal neighbours): which
+    pairs are both valid, and their edge weights ``exp(-gamma |I_p - I_q|)``."""
+    size = image.shape[dim] - 1
+    pairs = valid.narrow(dim - 1, 0, size) & valid.narrow(dim - 1, 1, size)
+    edge = (image.narrow(dim, 0, size) - image.narrow(dim, 1, size)).abs().mean(0)
+    return pairs, torch.exp(-gamma * edge)
 
 
 def _kernel_layout(normal: torch.Tensor) -> bool | None:
@@ -98,9 +104,8 @@ def _normal_smoothness_torch(normal: torch.Tensor, image: torch.Tensor, valid: t
     for dim in (1, 2):
         size = n.shape[dim] - 1
         a, b = n.narrow(dim, 0, size), n.narrow(dim, 1, size)
-        ok = valid.narrow(dim - 1, 0, size) & valid.narrow(dim - 1, 1, size)
-        edge = (image.narrow(dim, 0, size) - image.narrow(dim, 1, size)).abs().mean(0)
-        cost = (a - b).abs().sum(0) * torch.exp(-gamma * edge)
+        ok, weight = _pairs_and_weights(image, valid, gamma, dim)
+        cost = (a - b).abs().sum(0) * weight
         total = total + torch.where(ok, cost, torch.zeros_like(cost)).sum()
         count += int(ok.sum())
     return total / max(count, 1)

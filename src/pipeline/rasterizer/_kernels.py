@@ -739,7 +739,7 @@ def reduce_and_chain(
     dL/dT, and chain ``T = K [s_u R_wc r_0, s_v R_wc r_1, R_wc p + t]`` and
     ``n = sign * R_wc r_2`` back to means, quats (through the normalisation) and scales.
     ``d_means2d`` is the gradient w.r.t. a screen translation of the splat,
-    ``(dL/dT_u . T_w, dL/dT_v . T_w)``."""
+    ``(dL/dT_u . T_w, dL/dT_v . T_w)``. Writes every row of the outputs."""
     G = slots.shape[1]
     C = d_feat.shape[1]
     for chunk in prange(-(-means.shape[0] // _CHUNK)):
@@ -750,8 +750,14 @@ def reduce_and_chain(
         R = np.empty((3, 3))
         dR = np.empty((3, 3))
         for i in range(chunk * _CHUNK, min(means.shape[0], (chunk + 1) * _CHUNK)):
-            if emit_start[i] == emit_start[i + 1]:
-                continue  # never drawn: all gradients stay zero
+            if emit_start[i] == emit_start[i + 1]:  # never drawn: zero gradients
+                d_means[i, :] = 0.0
+                d_quats[i, :] = 0.0
+                d_scales[i, :] = 0.0
+                d_opac[i] = 0.0
+                d_feat[i, :] = 0.0
+                d_means2d[i, :] = 0.0
+                continue
             g[:] = 0.0
             for e in range(emit_start[i], emit_start[i + 1]):
                 for k in range(G):

@@ -706,6 +706,7 @@ void backward_tiles(const int64_t *tile_start, const int64_t *slot_of_entry, con
 // bit for bit the numba kernel's (the tests compare them), so the two backends bin alike.
 constexpr int PRE_LANES = 8;
 constexpr double RHO_SLACK = 1e-6, RHO_CUT_MAX = 9.0;  // _kernels._RHO_SLACK, project.RHO_CUT_MAX
+constexpr double OPACITY_AT_CUT_MAX = 0.3532;  // > exp(RHO_CUT_MAX / 2) / 255 = 0.35301
 
 inline vd dsplat(double a) { return (vd){} + a; }
 inline vd round_to_float(vd a) { return __builtin_convertvector(__builtin_convertvector(a, vf8), vd); }
@@ -713,9 +714,14 @@ inline vd round_to_float(vd a) { return __builtin_convertvector(__builtin_conver
 // smaller (larger); differs from the compositing's vmin / vmax at signed zeros and NaN.
 inline vd py_min(vd a, vd b) { return b < a ? b : a; }
 inline vd py_max(vd a, vd b) { return b > a ? b : a; }
+// IEEE square roots (correctly rounded: the same bits as glibc's sqrt, which numba calls).
 inline vd lane_sqrt(vd a) {
+#if defined(__AVX512F__)
+    return (vd)_mm512_sqrt_pd((__m512d)a);
+#else
     for (int l = 0; l < PRE_LANES; l++) a[l] = __builtin_sqrt(a[l]);
     return a;
+#endif
 }
 
 #if defined(__clang__)
@@ -769,12 +775,13 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
 }
 
 // ``_kernels.preprocess`` on surfels [begin, end), with each surfel's float32 row of the kernels'
-// table (the caller runs one call per chunk of surfels, one per thread at a time).
+// table, its ``n_feat`` features included (the caller runs one call per chunk of surfels, one
+// per thread at a time).
 NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const float *scales, const float *opac,
                                  const double *K, const double *Rwc, const double *twc, int64_t width,
                                  int64_t height, double near, double far, float *Tm, float *nrm, double *depth,
                                  int64_t *box, int32_t *radii, float *centre, float *surf, int64_t surf_cols,
-                                 int64_t begin, int64_t end) {
+                                 const float *feat, int64_t n_feat, int64_t begin, int64_t end) {
 #if defined(__clang__)
 #pragma clang fp contract(off)
 #endif
@@ -829,6 +836,11 @@ NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const f
         const vd zc = T[2][2];
         vd rho_cut;
         for (int l = 0; l < PRE_LANES; l++) {  // glibc's log, as numba calls it
+            // From o >= OPACITY_AT_CUT_MAX, 2 ln(255 o) > 9.001: the cap, without the log.
+            if (o[l] >= OPACITY_AT_CUT_MAX) {
+                rho_cut[l] = RHO_CUT_MAX;
+                continue;
+            }
             const double v = 2.0 * __builtin_log(255.0 * o[l]);
             rho_cut[l] = o[l] > 0 ? (v < RHO_CUT_MAX ? v : RHO_CUT_MAX) : -1.0;
         }
@@ -880,6 +892,7 @@ NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const f
             row[GEO_RHO_MAX] = (float)rho_max[l], row[GEO_OPACITY] = (float)o[l];
             row[GEO_CX] = centre[i * 2] = (float)pcx[l];
             row[GEO_CY] = centre[i * 2 + 1] = (float)pcy[l];
+            for (int64_t c = 0; c < n_feat; c++) row[E_FEAT + c] = feat[i * n_feat + c];
             int64_t b[4] = {0, -1, 0, -1};
             radii[i] = 0;
             if (drawn[l]) {

@@ -180,7 +180,11 @@ class Compositor:
     differs: :class:`NumbaCompositor` (``cpu``) and ``simd.SimdCompositor`` (``simd``). The
     set-up, the autograd Function and the per-surfel chain rule are shared."""
 
-    def prepare(self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> Geometry:
+    def prepare(
+        self, means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera
+    ) -> Geometry:
+        """Set-up and tile binning (``colors``: what the forward will composite, for a backend
+        that stores them with the surfels' screen data)."""
         raise NotImplementedError
 
     def forward(self, ctx, geom: Geometry, camera: Camera, depth_eps: float, feat: np.ndarray) -> tuple[list[np.ndarray], tuple]:
@@ -195,7 +199,7 @@ class Compositor:
 
 
 class NumbaCompositor(Compositor):
-    def prepare(self, means, quats, scales, opacities, camera):
+    def prepare(self, means, quats, scales, opacities, colors, camera):
         return prepare(means, quats, scales, opacities, camera)
 
     def forward(self, ctx, geom, camera, depth_eps, feat):
@@ -255,8 +259,9 @@ class _Rasterize(torch.autograd.Function):
         (slots,) = _carve(slot_buf, slot_spec)
         compositor.backward(geom, camera, depth_eps, feat, state, [_np(g) for g in grads], slots)
         dtype = geom.Tm.dtype
-        out = [np.zeros((P, 3), dtype), np.zeros((P, 4), dtype), np.zeros((P, 2), dtype), np.zeros(P, dtype)]
-        out += [np.zeros((P, C), dtype), np.zeros((P, 2), dtype)]
+        # Every row is written by the kernel (zeros for surfels never drawn).
+        out = [np.empty((P, 3), dtype), np.empty((P, 4), dtype), np.empty((P, 2), dtype), np.empty(P, dtype)]
+        out += [np.empty((P, C), dtype), np.empty((P, 2), dtype)]
         K.reduce_and_chain(
             geom.emit_start, slots, _np(quats), _np(scales), _np(means), geom.Tm, geom.nrm, Kc, Rwc, *out
         )
@@ -270,7 +275,7 @@ def render(
 ) -> tuple[list[Tensor], Tensor, Tensor, Geometry]:
     """Maps ``[features, alpha, depth_expected, depth_median, normal_cam, normal_world,
     distortion]``, ``radii``, ``means2d`` and the geometry (for statistics)."""
-    geom = compositor.prepare(means, quats, scales, opacities, camera)
+    geom = compositor.prepare(means, quats, scales, opacities, colors, camera)
     means2d = torch.from_numpy(geom.centre).requires_grad_(torch.is_grad_enabled())
     maps = _Rasterize.apply(means, quats, scales, opacities, colors, means2d, geom, camera, depth_eps, compositor)
     return list(maps), torch.from_numpy(geom.radii), means2d, geom

@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numba
 import numba.experimental.function_type  # noqa: F401  (numba's typing of _CFunction arguments)
+from numba.extending import typeof_impl
 import numpy as np
 import torch
 from torch import Tensor
@@ -56,7 +57,7 @@ _I = ctypes.c_int64
 _D = ctypes.c_double
 _FORWARD_ARGS = [_P, _P, _I, _P, _P, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 7 + [_P] * 6 + [_P] * 6
 _BACKWARD_ARGS = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 6 + [_P] * 5 + [_P] * 7 + [_P]
-_PREPROCESS_ARGS = [_P] * 7 + [_I, _I, _D, _D] + [_P] * 7 + [_I, _I, _I]
+_PREPROCESS_ARGS = [_P] * 7 + [_I, _I, _D, _D] + [_P] * 7 + [_I, _P, _I, _I, _I]
 _BIN_COUNT_ARGS = [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P]
 _BIN_FILL_ARGS = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P]
 _FUNCTIONS = {"simd_forward": _FORWARD_ARGS, "simd_backward": _BACKWARD_ARGS, "simd_preprocess": _PREPROCESS_ARGS,
@@ -180,12 +181,20 @@ class _CFunction(numba.types.WrapperAddressProtocol):
         numba_type = {_P: numba.types.voidptr, _I: numba.types.int64, _D: numba.types.float64}
         self._address = ctypes.cast(fn, ctypes.c_void_p).value
         self._signature = numba.types.void(*[numba_type[a] for a in argtypes])
+        self.numba_type = numba.types.FunctionType(self._signature)
 
     def __wrapper_address__(self) -> int:
         return self._address
 
     def signature(self):
         return self._signature
+
+
+# numba's typeof of a WrapperAddressProtocol builds a new FunctionType at every call of a runner
+# (~0.15 ms each, five per render); the kernels' types are fixed.
+@typeof_impl.register(_CFunction)
+def _typeof_cfunction(val: _CFunction, c) -> numba.types.FunctionType:
+    return val.numba_type
 
 
 def _kernels() -> dict[str, _CFunction]:
@@ -206,15 +215,16 @@ _BIN_PARTS = 8  # parts of the depth order binned in parallel (any count gives t
 
 @numba.njit(parallel=True, cache=True)
 def preprocess_all(pre, means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, depth, box, radii,
-                   centre, surf):  # fmt: skip
+                   centre, surf, feat):  # fmt: skip
     """``_kernels.preprocess`` in C++ (float32 surfels), with each surfel's row of ``surf``
-    (the compositing kernels' table, features aside) in place of the float64 ``geo``."""
+    (the compositing kernels' table, its features ``feat`` included) in place of the float64
+    ``geo``."""
     P = means.shape[0]
     for c in numba.prange(-(-P // _PREPROCESS_CHUNK)):
         lo = c * _PREPROCESS_CHUNK
         pre(means.ctypes, quats.ctypes, scales.ctypes, opac.ctypes, K.ctypes, Rwc.ctypes, twc.ctypes, width, height,
             near, far, Tm.ctypes, nrm.ctypes, depth.ctypes, box.ctypes, radii.ctypes, centre.ctypes, surf.ctypes,
-            surf.shape[1], lo, min(P, lo + _PREPROCESS_CHUNK))  # fmt: skip
+            surf.shape[1], feat.ctypes, feat.shape[1], lo, min(P, lo + _PREPROCESS_CHUNK))  # fmt: skip
 
 
 @numba.njit(parallel=True, cache=True)
@@ -282,17 +292,9 @@ def backward_all(bwd, n_workers, tile_start, slot_of_entry, tile_order, tile_lis
             g5.ctypes, g6.ctypes, slots.ctypes)  # fmt: skip
 
 
-# Columns of a row of the kernels' table (:func:`preprocess_all`, :func:`put_features`): the
-# entry row's E_FEAT + MAX_CHANNELS, whole 64-byte cache lines.
+# Columns of a row of the kernels' table (:func:`preprocess_all`): the entry row's E_FEAT +
+# MAX_CHANNELS, whole 64-byte cache lines.
 SURF_COLS = -(-(K.E_FEAT + MAX_CHANNELS) // 16) * 16
-
-
-@numba.njit(parallel=True, cache=True)
-def put_features(feat, surf):
-    """The features into their columns (``E_FEAT:``) of the kernels' table."""
-    for s in numba.prange(feat.shape[0]):
-        for c in range(feat.shape[1]):
-            surf[s, K.E_FEAT + c] = feat[s, c]
 
 
 @numba.njit(cache=True)
@@ -353,14 +355,17 @@ def depth_order(depth, radii):
     return ids
 
 
-def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, camera: Camera) -> cpu.Geometry:
+def prepare(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, colors: Tensor, camera: Camera
+) -> cpu.Geometry:
     """:func:`cpu.prepare` in C++ (:func:`preprocess_all`, :func:`bin_tiles`: the same boxes,
     lists and slots bit for bit) with :func:`depth_order`'s radix sort, the kernels' float32
-    table ``surf`` in place of ``geo``, and the tiles in one list by decreasing cost
-    (``worker_tiles``; ``worker_start`` is ``[0, n_tiles]``): the kernels' calls take the next
-    tile from a shared counter, which balances the threads better than ``schedule_tiles``' fixed
-    split (the results are the same: a tile is one call's sequential pass). The numba kernels
-    keep their fixed split, which their tests pin bit for bit."""
+    table ``surf`` (``colors`` in its feature columns) in place of ``geo``, and the tiles in
+    one list by decreasing cost (``worker_tiles``; ``worker_start`` is ``[0, n_tiles]``): the
+    kernels' calls take the next tile from a shared counter, which balances the threads better
+    than ``schedule_tiles``' fixed split (the results are the same: a tile is one call's
+    sequential pass). The numba kernels keep their fixed split, which their tests pin bit for
+    bit."""
     P = means.shape[0]
     Kc, Rwc, twc = (np.ascontiguousarray(a, np.float64) for a in cpu._camera_arrays(camera))
     Tm, nrm = np.empty((P, 9), np.float32), np.empty((P, 3), np.float32)
@@ -374,6 +379,7 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     preprocess_all(
         kernels["simd_preprocess"], cpu._np(means), cpu._np(quats), cpu._np(scales), cpu._np(opacities), Kc, Rwc, twc,
         camera.width, camera.height, camera.near, camera.far, Tm, nrm, depth, box, radii, centre, surf,
+        cpu._np(colors),
     )  # fmt: skip
     n_tx, n_ty = -(-camera.width // K.TILE), -(-camera.height // K.TILE)
     binned = bin_tiles(kernels["simd_bin_count"], kernels["simd_bin_fill"], depth_order(depth, radii), box, n_tx, n_ty)
@@ -401,8 +407,8 @@ class SimdCompositor(cpu.Compositor):
     """The C++ set-up and compositing kernels in :class:`cpu.Compositor`'s place: float32 surfel
     rows (``Geometry.surf``) and pair records of their own layout."""
 
-    def prepare(self, means, quats, scales, opacities, camera):
-        return prepare(means, quats, scales, opacities, camera)
+    def prepare(self, means, quats, scales, opacities, colors, camera):
+        return prepare(means, quats, scales, opacities, colors, camera)
 
     def forward(self, ctx, geom, camera, depth_eps, feat):
         H, W = camera.height, camera.width
@@ -419,7 +425,6 @@ class SimdCompositor(cpu.Compositor):
         scratch = cpu.SCRATCH.take("simd-forward", cpu._carve_bytes(specs))
         weakref.finalize(ctx, cpu.SCRATCH.give, "simd-forward", scratch)
         *aux, med_local, rec_T, rec_A, rmask, rec_start, rec_count = cpu._carve(scratch, specs)
-        put_features(feat, geom.surf)
         forward_all(
             _kernels()["simd_forward"], numba.get_num_threads(), geom.tile_start, geom.worker_tiles, geom.tile_list,
             geom.surf, C, Rwc, W, H, geom.n_tx, camera.near, camera.far, depth_eps, *maps, *aux, med_local,
