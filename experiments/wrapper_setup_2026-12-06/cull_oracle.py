@@ -1,4 +1,4 @@
-"""cull_oracle.py: the upper bound of binning fewer (tile, surfel) entries. The benchmark's scene
+"""cull_oracle.py [ROUNDS] [--geometric]: the upper bound of binning fewer (tile, surfel) entries. The benchmark's scene
 (800x600 / 200k) rendered through the simd kernels with its tile lists as binned, and with the
 entries that composite no pair removed (an oracle: a conservative per-tile test of the ellipse
 could remove at most these; the slots of the removed entries are zero-filled for the
@@ -10,6 +10,7 @@ import sys, time, statistics, weakref
 from pathlib import Path
 import numpy as np, torch
 from pipeline import heap; heap.keep_freed_memory()
+ARGS = sys.argv[1:]
 sys.argv = ["x", "none"]
 exec(open(Path(__file__).resolve().parent.parent / "setup_simd_2026-12-06" / "harness.py").read().split("mode = sys.argv[1]")[0])
 from pipeline.rasterizer import simd, cpu
@@ -27,14 +28,47 @@ class Ctx:
 
 _, state = simd.SIMD.forward(Ctx(), geom, cam, 1e-6, s.features.numpy())
 n = geom.num_pairs
-keep = state[6][:n] > 0  # rec_count: entries that composited at least one pair
+if "--geometric" in ARGS:
+    # entries with a candidate pixel: some box pixel in the tile passes the numba kernel's
+    # per-pair test (rho, near, alpha; no transmittance), in float64 on the cpu backend's geo
+    import numba
+
+    @numba.njit(cache=False)
+    def candidates(tile_start, tile_list, geo, Tm, box, n_tx, width, height, near):
+        out = np.zeros(tile_list.shape[0], np.bool_)
+        for t in range(tile_start.shape[0] - 1):
+            tx0, ty0 = (t % n_tx) * K.TILE, (t // n_tx) * K.TILE
+            for j in range(tile_start[t], tile_start[t + 1]):
+                e = geo[tile_list[j]]
+                b = box[tile_list[j]]
+                for py in range(max(b[2], ty0), min(b[3], ty0 + K.TILE - 1, height - 1) + 1):
+                    dy = py - e[K.GEO_CY]
+                    qr0 = py * e[K.GEO_AY] + e[K.GEO_A0]
+                    qr1 = py * e[K.GEO_AY + 1] + e[K.GEO_A0 + 1]
+                    qr2 = py * e[K.GEO_AY + 2] + e[K.GEO_A0 + 2]
+                    for px in range(max(b[0], tx0), min(b[1], tx0 + K.TILE - 1, width - 1) + 1):
+                        ok = K._pair(float(px), dy * dy, qr0, qr1, qr2, e[K.GEO_AX], e[K.GEO_AX + 1], e[K.GEO_AX + 2],
+                                     e[K.GEO_CX], e[K.GEO_RHO_MAX], e[K.GEO_DET], e[K.GEO_INV_DET], float(Tm[tile_list[j], 8]),
+                                     e[K.GEO_INV_ZC], near, e[K.GEO_OPACITY])[0]
+                        if ok:
+                            out[j] = True
+                            break
+                    if out[j]:
+                        break
+        return out
+
+    g64 = cpu.prepare(s.means, s.quats, s.scales, s.opacities, cam)
+    assert np.array_equal(g64.tile_list, geom.tile_list)
+    keep = candidates(g64.tile_start, g64.tile_list, g64.geo, g64.Tm, g64.box, g64.n_tx, cam.width, cam.height, cam.near)
+else:
+    keep = state[6][:n] > 0  # rec_count: entries that composited at least one pair
 tile_of = np.repeat(np.arange(geom.tile_start.shape[0] - 1), np.diff(geom.tile_start))
 tile_start = np.concatenate([[0], np.cumsum(np.bincount(tile_of[keep], minlength=geom.tile_start.shape[0] - 1))])
 culled = cpu.Geometry(geom.Tm, geom.nrm, None, geom.depth, geom.box, geom.radii, geom.centre, tile_start,
                       np.ascontiguousarray(geom.tile_list[keep]), geom.emit_start,
                       np.ascontiguousarray(geom.slot_of_entry[keep]), geom.rec_tile_start, geom.worker_start,
                       geom.worker_tiles, geom.n_tx, geom.surf)
-print(f"entries {n}, composite nothing {n - keep.sum()} ({(n - keep.sum()) / n:.1%})")
+print(f"entries {n}, removed {n - keep.sum()} ({(n - keep.sum()) / n:.1%}): " + ("no candidate pixel" if "--geometric" in ARGS else "composite nothing"))
 
 
 class Fixed(simd.SimdCompositor):
@@ -60,7 +94,7 @@ for name, c in comps.items():
     out[name] = [m.detach().clone() for m in maps] + [getattr(leaves, f).grad.clone() for f in ("means", "quats", "scales", "opacities", "features")]
 print("maps and gradients identical:", all(torch.equal(a, b) for a, b in zip(*out.values())))
 res = {k: [] for k in comps}
-for r in range(int(sys.argv[1]) if len(sys.argv) > 1 and sys.argv[1].isdigit() else 16):
+for r in range(next((int(a) for a in ARGS if a.isdigit()), 16)):
     for name in (list(comps) if r % 2 == 0 else list(comps)[::-1]):
         leaves = B._leaves(s)
         t = time.perf_counter()
