@@ -1,4 +1,4 @@
-"""cull_oracle.py [ROUNDS] [--geometric]: the upper bound of binning fewer (tile, surfel) entries. The benchmark's scene
+"""cull_oracle.py [ROUNDS] [--geometric | --bound]: the upper bound of binning fewer (tile, surfel) entries. The benchmark's scene
 (800x600 / 200k) rendered through the simd kernels with its tile lists as binned, and with the
 entries that composite no pair removed (an oracle: a conservative per-tile test of the ellipse
 could remove at most these; the slots of the removed entries are zero-filled for the
@@ -60,6 +60,82 @@ if "--geometric" in ARGS:
     g64 = cpu.prepare(s.means, s.quats, s.scales, s.opacities, cam)
     assert np.array_equal(g64.tile_list, geom.tile_list)
     keep = candidates(g64.tile_start, g64.tile_list, g64.geo, g64.Tm, g64.box, g64.n_tx, cam.width, cam.height, cam.near)
+elif "--bound" in ARGS:
+    # a cheap conservative test per entry (the one a binning could run): the low-pass disc
+    # 2 |p - c|^2 <= rho_max, or the conic Q = q0^2 + q1^2 - rho_max q2^2 <= 0 (rho3 <= rho_max),
+    # reaches the rectangle of the box's pixel centres in the tile; Q's minimum over the
+    # rectangle in closed form (interior, else the four edges), a relative margin for rounding
+    import numba
+
+    @numba.njit(cache=False)
+    def q_at(S, x, y):
+        return S[0, 0] * x * x + 2 * S[0, 1] * x * y + S[1, 1] * y * y + 2 * S[0, 2] * x + 2 * S[1, 2] * y + S[2, 2]
+
+    @numba.njit(cache=False)
+    def edge_min(S, fixed, lo, hi, along_x):
+        # Q on a segment: x = fixed (along y) or y = fixed (along x), minimised in [lo, hi]
+        if along_x:
+            a, b = S[0, 0], S[0, 1] * fixed + S[0, 2]
+        else:
+            a, b = S[1, 1], S[0, 1] * fixed + S[1, 2]
+        t = min(max(-b / a, lo), hi) if a > 0 else lo
+        best = 1e300
+        for v in (lo, hi, t):
+            q = q_at(S, v, fixed) if along_x else q_at(S, fixed, v)
+            best = min(best, q)
+        return best
+
+    @numba.njit(cache=False)
+    def bound_keep(tile_start, tile_list, geo, box, n_tx, width, height, margin):
+        out = np.zeros(tile_list.shape[0], np.bool_)
+        S = np.empty((3, 3))
+        for t in range(tile_start.shape[0] - 1):
+            tx0, ty0 = (t % n_tx) * K.TILE, (t // n_tx) * K.TILE
+            for j in range(tile_start[t], tile_start[t + 1]):
+                e = geo[tile_list[j]]
+                b = box[tile_list[j]]
+                xa, xb = max(b[0], tx0), min(b[1], tx0 + K.TILE - 1, width - 1)
+                ya, yb = max(b[2], ty0), min(b[3], ty0 + K.TILE - 1, height - 1)
+                rho = e[K.GEO_RHO_MAX]
+                cx, cy = e[K.GEO_CX], e[K.GEO_CY]
+                dx = max(xa - cx, 0.0, cx - xb)
+                dy = max(ya - cy, 0.0, cy - yb)
+                if 2.0 * (dx * dx + dy * dy) <= rho * (1 + margin) + margin:
+                    out[j] = True
+                    continue
+                # q = M (x, y, 1): rows AX, AY, A0 are the columns of M
+                for r in range(3):
+                    for c in range(3):
+                        S[r, c] = 0.0
+                for k in range(3):
+                    w = 1.0 if k < 2 else -rho
+                    m = (e[K.GEO_AX + k], e[K.GEO_AY + k], e[K.GEO_A0 + k])
+                    for r in range(3):
+                        for c in range(3):
+                            S[r, c] += w * m[r] * m[c]
+                det2 = S[0, 0] * S[1, 1] - S[0, 1] * S[0, 1]
+                if not (S[0, 0] > 0 and det2 > 0):
+                    out[j] = True  # not an ellipse: keep
+                    continue
+                ex = (S[0, 1] * S[1, 2] - S[1, 1] * S[0, 2]) / det2
+                ey = (S[0, 1] * S[0, 2] - S[0, 0] * S[1, 2]) / det2
+                if xa <= ex <= xb and ya <= ey <= yb:
+                    out[j] = True
+                    continue
+                qmin = min(edge_min(S, float(ya), float(xa), float(xb), True), edge_min(S, float(yb), float(xa), float(xb), True),
+                           edge_min(S, float(xa), float(ya), float(yb), False), edge_min(S, float(xb), float(ya), float(yb), False))
+                # the margin relative to rho_max q2^2 at the ellipse's centre
+                q2c = e[K.GEO_AX + 2] * ex + e[K.GEO_AY + 2] * ey + e[K.GEO_A0 + 2]
+                out[j] = qmin <= margin * rho * q2c * q2c
+        return out
+
+    g64 = cpu.prepare(s.means, s.quats, s.scales, s.opacities, cam)
+    assert np.array_equal(g64.tile_list, geom.tile_list)
+    keep = bound_keep(g64.tile_start, g64.tile_list, g64.geo, g64.box, g64.n_tx, cam.width, cam.height, 1e-3)
+    bound_keep(g64.tile_start, g64.tile_list, g64.geo, g64.box, g64.n_tx, cam.width, cam.height, 1e-3)
+    t0 = time.perf_counter()
+    bound_keep(g64.tile_start, g64.tile_list, g64.geo, g64.box, g64.n_tx, cam.width, cam.height, 1e-3)
+    print(f"the test on every entry, one thread of numba: {(time.perf_counter() - t0) * 1e3:.1f} ms")
 else:
     keep = state[6][:n] > 0  # rec_count: entries that composited at least one pair
 tile_of = np.repeat(np.arange(geom.tile_start.shape[0] - 1), np.diff(geom.tile_start))
@@ -68,7 +144,7 @@ culled = cpu.Geometry(geom.Tm, geom.nrm, None, geom.depth, geom.box, geom.radii,
                       np.ascontiguousarray(geom.tile_list[keep]), geom.emit_start,
                       np.ascontiguousarray(geom.slot_of_entry[keep]), geom.rec_tile_start, geom.worker_start,
                       geom.worker_tiles, geom.n_tx, geom.surf)
-print(f"entries {n}, removed {n - keep.sum()} ({(n - keep.sum()) / n:.1%}): " + ("no candidate pixel" if "--geometric" in ARGS else "composite nothing"))
+print(f"entries {n}, removed {n - keep.sum()} ({(n - keep.sum()) / n:.1%}): " + ("no candidate pixel" if "--geometric" in ARGS else "the conic and disc miss the tile" if "--bound" in ARGS else "composite nothing"))
 
 
 class Fixed(simd.SimdCompositor):
