@@ -178,8 +178,9 @@ def test_the_chain_rule_writes_zeros_for_surfels_never_drawn(dtype):
 
 def test_tile_lists_are_front_to_back_with_ties_in_id_order():
     """Each tile's list equals the stable (depth, id) sort of the drawn surfels whose box
-    touches it, also with many equal depths (the global quicksort breaks ties by id), and
-    each entry's gradient slot is its surfel's own (row-major tile order) slot."""
+    touches it and that reach it (random bits), also with many equal depths (the global
+    quicksort breaks ties by id), and each entry's gradient slot is its surfel's own slot, in
+    row-major order of the tiles it reaches."""
     import numpy as np
 
     from pipeline.rasterizer import _kernels as K
@@ -191,16 +192,29 @@ def test_tile_lists_are_front_to_back_with_ties_in_id_order():
     box = np.stack([x0, np.minimum(x0 + rng.integers(0, 30, P), 79), y0, np.minimum(y0 + rng.integers(0, 30, P), 63)], 1)
     radii = (rng.random(P) > 0.2).astype(np.int32)
     depth = rng.integers(0, 12, P).astype(np.float64)  # ~30 surfels per depth value
-    tile_start, tile_list, emit_start, slot_of_entry, _ = K.bin_tiles(cpu.depth_order(depth, radii), box, n_tx, n_ty)
+    reached = rng.integers(0, 2**9, P).astype(np.uint64)  # boxes of at most 3 x 3 tiles
+    geo = np.zeros((P, K.GEO_SIZE))  # read only for boxes of more than 64 tiles
+    binned = K.bin_tiles(cpu.depth_order(depth, radii), box, reached, geo, False, n_tx, n_ty)
+    tile_start, tile_list, emit_start, slot_of_entry, _ = binned
+
+    def box_tiles(s):  # row-major
+        return [(tx, ty) for ty in range(box[s, 2] // 16, box[s, 3] // 16 + 1) for tx in range(box[s, 0] // 16, box[s, 1] // 16 + 1)]
+
+    def reached_tiles(s):
+        return [t for i, t in enumerate(box_tiles(s)) if int(reached[s]) >> i & 1]
+
+    assert (np.diff(emit_start) == [len(reached_tiles(s)) if radii[s] else 0 for s in range(P)]).all()
+    dropped = 0
     for t in range(n_tx * n_ty):
         tx, ty = t % n_tx, t // n_tx
-        hit = [s for s in range(P) if radii[s] and box[s, 0] // 16 <= tx <= box[s, 1] // 16 and box[s, 2] // 16 <= ty <= box[s, 3] // 16]
+        hit = [s for s in range(P) if radii[s] and (tx, ty) in reached_tiles(s)]
+        dropped += sum(1 for s in range(P) if radii[s] and (tx, ty) in box_tiles(s)) - len(hit)
         expected = sorted(hit, key=lambda s: (depth[s], s))
         got = tile_list[tile_start[t] : tile_start[t + 1]]
         assert list(got) == expected
         for j, s in zip(range(tile_start[t], tile_start[t + 1]), got):
-            cols = box[s, 1] // 16 - box[s, 0] // 16 + 1
-            assert slot_of_entry[j] == emit_start[s] + (ty - box[s, 2] // 16) * cols + tx - box[s, 0] // 16
+            assert slot_of_entry[j] == emit_start[s] + reached_tiles(s).index((tx, ty))
+    assert dropped > 100, "the bits drop tiles"
 
 
 @pytest.mark.parametrize("n_workers", [1, 2, 3, 8])

@@ -120,11 +120,12 @@ def _cross(a0, a1, a2, b0, b1, b2):
 
 @njit(parallel=True, cache=True, error_model="numpy")
 def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, geo, depth, box, radii,
-               centre):  # fmt: skip
+               centre, round32, reached):  # fmt: skip
     """Per surfel: ``Tm`` (P, 9) ray transform ``K [s_u R_c e_u, s_v R_c e_v, p_c]``
     (row-major), ``nrm`` (P, 3) camera-frame normal facing the camera, ``geo``,
-    ``depth`` (centre z), ``box`` (P, 4) support box, ``radii`` (0 = not visible) and
-    ``centre`` (P, 2) the projected centre in ``Tm``'s dtype (0 where not drawn)."""
+    ``depth`` (centre z), ``box`` (P, 4) support box, ``radii`` (0 = not visible),
+    ``centre`` (P, 2) the projected centre in ``Tm``'s dtype (0 where not drawn) and
+    ``reached`` the tiles of its box it reaches (:func:`reach_bits`; 0 where not drawn)."""
     fx, sk, cx0, fy, cy0 = K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]
     big = 4.0 * max(width, height)
     for chunk in prange(-(-means.shape[0] // _CHUNK)):
@@ -178,6 +179,7 @@ def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far
             geo[i, GEO_RHO_MAX] = rho_cut * (1.0 + _RHO_SLACK) + _RHO_SLACK
             geo[i, GEO_OPACITY] = o
             radii[i] = 0
+            reached[i] = 0
             box[i, 0], box[i, 1], box[i, 2], box[i, 3] = 0, -1, 0, -1
             if not (zc >= near and zc <= far and rho_cut >= 0.0):
                 geo[i, GEO_CX] = 0.0
@@ -217,6 +219,7 @@ def preprocess(means, quats, scales, opac, K, Rwc, twc, width, height, near, far
             if xmin <= xmax and ymin <= ymax:
                 box[i, 0], box[i, 1], box[i, 2], box[i, 3] = xmin, xmax, ymin, ymax
                 radii[i] = max(1, int(math.ceil(min(max(rad, 0.0), big))))
+                reached[i] = reach_bits(xmin, xmax, ymin, ymax, geo[i], round32)
 
 
 @njit(cache=True)
@@ -244,51 +247,189 @@ def break_depth_ties(order, depth):
         k = e
 
 
+# The binning lists a surfel in a tile of its box only where some pixel centre of the tile may
+# composite it. rho_max is inflated by this factor there: far beyond the kernels' float32
+# rounding of rho, so no entry the kernels would composite (or that would end a pixel) is
+# dropped and every result stays bit for bit what the full box gives.
+CULL_MARGIN = 1e-3
+# Below this det / (s00 s11) the ellipse's centre is ill-conditioned (a surfel seen edge-on):
+# the test then tries all four edges of a tile rather than those facing the centre.
+_WELL_POSED = 1e-4
+
+
+@njit(inline="always")
+def _geo_value(g, k, round32):
+    # np.float64: numba's float() of a float32 stays float32
+    return np.float64(np.float32(g[k])) if round32 else np.float64(g[k])
+
+
+@njit(inline="always")
+def tile_conic(g, round32):
+    """The per-tile test's constants of one surfel (``g``: its ``geo`` row, rounded to float32
+    where ``round32``, as the simd kernels' rows hold it): q's coefficients, the inflated
+    ``rho_max`` ``r``, the centre, from the quadratic ``Q(x, y) = q0^2 + q1^2 - r q2^2``
+    (``Q <= 0`` where ``rho3 <= r``) ``= s00 x^2 + 2 s01 x y + s11 y^2 + 2 s02 x + 2 s12 y + ...``
+    its coefficients ``s01, s02, s12, 1 / s00, 1 / s11``, its minimiser ``(ex, ey)``, whether it
+    is an ellipse and whether that minimiser is well-conditioned. The C++ binning computes the
+    same values in the same order (no fused multiply-add), so both backends list alike."""
+    ax0, ax1, ax2 = _geo_value(g, GEO_AX, round32), _geo_value(g, GEO_AX + 1, round32), _geo_value(g, GEO_AX + 2, round32)
+    ay0, ay1, ay2 = _geo_value(g, GEO_AY, round32), _geo_value(g, GEO_AY + 1, round32), _geo_value(g, GEO_AY + 2, round32)
+    a00, a01, a02 = _geo_value(g, GEO_A0, round32), _geo_value(g, GEO_A0 + 1, round32), _geo_value(g, GEO_A0 + 2, round32)
+    cx, cy = _geo_value(g, GEO_CX, round32), _geo_value(g, GEO_CY, round32)
+    r = _geo_value(g, GEO_RHO_MAX, round32) * (1.0 + CULL_MARGIN)
+    s00 = ax0 * ax0 + ax1 * ax1 - r * (ax2 * ax2)
+    s01 = ax0 * ay0 + ax1 * ay1 - r * (ax2 * ay2)
+    s11 = ay0 * ay0 + ay1 * ay1 - r * (ay2 * ay2)
+    s02 = ax0 * a00 + ax1 * a01 - r * (ax2 * a02)
+    s12 = ay0 * a00 + ay1 * a01 - r * (ay2 * a02)
+    det2 = s00 * s11 - s01 * s01
+    ellipse = s00 > 0.0 and det2 > 0.0
+    ex, ey, inv00, inv11 = 0.0, 0.0, 0.0, 0.0
+    if ellipse:
+        ex = (s01 * s12 - s11 * s02) / det2
+        ey = (s01 * s02 - s00 * s12) / det2
+        inv00 = 1.0 / s00
+        inv11 = 1.0 / s11
+    return (ax0, ax1, ax2, ay0, ay1, ay2, a00, a01, a02, r, cx, cy, s01, s02, s12, inv00, inv11, ex, ey,
+            ellipse, det2 > _WELL_POSED * (s00 * s11))  # fmt: skip
+
+
+@njit(inline="always")
+def _conic_value(c, x, y):
+    q0 = x * c[0] + y * c[3] + c[6]
+    q1 = x * c[1] + y * c[4] + c[7]
+    q2 = x * c[2] + y * c[5] + c[8]
+    return q0 * q0 + q1 * q1 - c[9] * (q2 * q2)
+
+
+@njit(inline="always")
+def tile_reached(c, xa, xb, ya, yb):
+    """Whether a pixel centre of ``[xa, xb] x [ya, yb]`` (the surfel's box in a tile) may pass
+    the kernels' ``rho`` test: the low-pass disc ``2 |p - c|^2 <= r`` or the conic ``Q <= 0``
+    reaches the rectangle (``c``: :func:`tile_conic`). Where ``Q`` is no ellipse, always."""
+    dx = max(max(xa - c[10], 0.0), c[10] - xb)
+    dy = max(max(ya - c[11], 0.0), c[11] - yb)
+    if 2.0 * (dx * dx + dy * dy) <= c[9] or not c[19]:
+        return True
+    ex, ey = c[17], c[18]
+    if xa <= ex and ex <= xb and ya <= ey and ey <= yb:
+        return True
+    # Q is strictly convex: off the rectangle its minimum over the rectangle lies on an edge
+    # facing (ex, ey) (KKT), at the vertex of that edge's parabola clamped to the edge.
+    every = not c[20]
+    s01, s02, s12, inv00, inv11 = c[12], c[13], c[14], c[15], c[16]
+    if every or ey < ya:
+        if _conic_value(c, min(max(-(s01 * ya + s02) * inv00, xa), xb), ya) <= 0.0:
+            return True
+    if every or ey > yb:
+        if _conic_value(c, min(max(-(s01 * yb + s02) * inv00, xa), xb), yb) <= 0.0:
+            return True
+    if every or ex < xa:
+        if _conic_value(c, xa, min(max(-(s01 * xa + s12) * inv11, ya), yb)) <= 0.0:
+            return True
+    if every or ex > xb:
+        if _conic_value(c, xb, min(max(-(s01 * xb + s12) * inv11, ya), yb)) <= 0.0:
+            return True
+    return False
+
+
+_ALL_TILES = np.uint64(0xFFFFFFFFFFFFFFFF)
+
+
+@njit(inline="always")
+def _box_tile_reached(c, x0, x1, y0, y1, tx, ty):
+    """:func:`tile_reached` for the part of box ``[x0, x1] x [y0, y1]`` in tile ``(tx, ty)``."""
+    xa, xb = max(x0, tx * TILE), min(x1, tx * TILE + TILE - 1)
+    ya, yb = max(y0, ty * TILE), min(y1, ty * TILE + TILE - 1)
+    return tile_reached(c, float(xa), float(xb), float(ya), float(yb))
+
+
+@njit(inline="always")
+def reach_bits(x0, x1, y0, y1, g, round32):
+    """The tiles of box ``[x0, x1] x [y0, y1]`` (row-major) that the surfel of ``geo`` row ``g``
+    reaches, as bits, for a box of at most 64 tiles (one tile: reached, untested); all bits
+    set for a larger box (the binning tests each of its tiles itself)."""
+    tx0, tx1, ty0, ty1 = x0 // TILE, x1 // TILE, y0 // TILE, y1 // TILE
+    if tx0 == tx1 and ty0 == ty1:
+        return np.uint64(1)
+    if (tx1 - tx0 + 1) * (ty1 - ty0 + 1) > 64:
+        return _ALL_TILES
+    conic = tile_conic(g, round32)
+    bits = np.uint64(0)
+    i = np.uint64(0)
+    for ty in range(ty0, ty1 + 1):
+        for tx in range(tx0, tx1 + 1):
+            if _box_tile_reached(conic, x0, x1, y0, y1, tx, ty):
+                bits |= np.uint64(1) << i
+            i += np.uint64(1)
+    return bits
+
+
+@njit(inline="always")
+def _listed(bits, i, n_box_tiles, x0, x1, y0, y1, tx, ty, g, round32):
+    """Whether tile ``i`` (row-major; ``(tx, ty)``) of a box is listed: ``reach_bits``' bit, or
+    for a box of more than 64 tiles the test itself."""
+    if n_box_tiles <= 64:
+        return (bits >> np.uint64(i)) & np.uint64(1) != np.uint64(0)
+    return _box_tile_reached(tile_conic(g, round32), x0, x1, y0, y1, tx, ty)
+
+
 @njit(parallel=True, cache=True, error_model="numpy")
-def bin_tiles(front_to_back, box, n_tx, n_ty):
-    """List every visible surfel in the tiles its box touches, front to back per tile.
+def bin_tiles(front_to_back, box, reached, geo, round32, n_tx, n_ty):
+    """List every visible surfel in the tiles of its box that it reaches (``reached``:
+    :func:`reach_bits` from :func:`preprocess`; ``geo``, rounded to float32 where ``round32``,
+    for boxes of more than 64 tiles), front to back per tile.
 
     ``front_to_back``: the drawn surfel ids sorted by ``(centre depth, id)``
     (``depth_order``); filling the tiles in that order leaves each tile's list sorted by
     ``(depth, id)`` with no per-tile sort. Returns ``tile_start (n_tiles + 1)``,
     ``tile_list (n_pairs)`` surfel ids, ``emit_start (P + 1)`` and ``slot_of_entry
     (n_pairs)``: the gradient slot of list entry ``j``, such that surfel ``s``'s slots are
-    ``emit_start[s]:emit_start[s + 1]``, in its own row-major tile order (the backward
-    scatters each entry's slot there, so the per-surfel sum reads them contiguously);
-    and ``rec_tile_start``, each tile's region in the pair-record buffer (its boxes' pixel
-    count: an upper bound).
+    ``emit_start[s]:emit_start[s + 1]``, in its own row-major order of the tiles it reaches
+    (the backward scatters each entry's slot there, so the per-surfel sum reads them
+    contiguously); and ``rec_tile_start``, each tile's region in the pair-record buffer (its
+    entries' box pixels: an upper bound).
     """
     P = box.shape[0]
     n_tiles = n_tx * n_ty
     n = front_to_back.shape[0]
     per_surfel = np.zeros(P + 1, np.int64)
-    # Tile ranges and pixel boxes in front-to-back order, so the passes below read them in
-    # order (in depth order the ids are scattered: reading ``box[s]`` there missed the cache).
+    # Tile ranges, pixel boxes and reached tiles in front-to-back order, so the passes below
+    # read them in order (in depth order the ids are scattered: reading ``box[s]`` there
+    # missed the cache).
     tiles = np.empty((n, 4), np.int32)
     pix = np.empty((n, 4), np.int32)
+    bits = np.empty(n, np.uint64)
     for k in prange(n):
         s = front_to_back[k]
         for c in range(4):
             pix[k, c] = box[s, c]
             tiles[k, c] = box[s, c] // TILE
-        per_surfel[s + 1] = (tiles[k, 1] - tiles[k, 0] + 1) * (tiles[k, 3] - tiles[k, 2] + 1)
-    emit_start = np.cumsum(per_surfel)
+        bits[k] = reached[s]
     # Counted and filled in parallel over contiguous parts of the front-to-back order: part
     # ``b`` writes its entries of tile ``t`` after those of the parts before it, so each
     # tile's list is in front-to-back order as a sequential fill would leave it. The count
-    # also sums each tile's box pixels, the fill writes each entry's gradient slot.
+    # also sums each tile's box pixels and each surfel's entries, the fill writes each
+    # entry's gradient slot.
     n_parts = _BIN_PARTS
     part_len = -(-n // n_parts)
     part_counts = np.zeros((n_parts, n_tiles), np.int64)
     part_pixels = np.zeros((n_parts, n_tiles), np.int64)
     for b in prange(n_parts):
         for k in range(b * part_len, min(n, (b + 1) * part_len)):
+            s = front_to_back[k]
+            n_box = (tiles[k, 1] - tiles[k, 0] + 1) * (tiles[k, 3] - tiles[k, 2] + 1)
+            i = 0
             for ty in range(tiles[k, 2], tiles[k, 3] + 1):
                 rows = min(pix[k, 3], ty * TILE + TILE - 1) - max(pix[k, 2], ty * TILE) + 1
                 for tx in range(tiles[k, 0], tiles[k, 1] + 1):
-                    t = ty * n_tx + tx
-                    part_counts[b, t] += 1
-                    part_pixels[b, t] += rows * (min(pix[k, 1], tx * TILE + TILE - 1) - max(pix[k, 0], tx * TILE) + 1)
+                    if _listed(bits[k], i, n_box, pix[k, 0], pix[k, 1], pix[k, 2], pix[k, 3], tx, ty, geo[s], round32):
+                        t = ty * n_tx + tx
+                        part_counts[b, t] += 1
+                        part_pixels[b, t] += rows * (min(pix[k, 1], tx * TILE + TILE - 1) - max(pix[k, 0], tx * TILE) + 1)
+                        per_surfel[s + 1] += 1
+                    i += 1
+    emit_start = np.cumsum(per_surfel)
     tile_start = np.zeros(n_tiles + 1, np.int64)
     capacity = np.zeros(n_tiles + 1, np.int64)
     for t in range(n_tiles):
@@ -309,13 +450,17 @@ def bin_tiles(front_to_back, box, n_tx, n_ty):
         for k in range(b * part_len, min(n, (b + 1) * part_len)):
             s = front_to_back[k]
             slot = emit_start[s]
+            n_box = (tiles[k, 1] - tiles[k, 0] + 1) * (tiles[k, 3] - tiles[k, 2] + 1)
+            i = 0
             for ty in range(tiles[k, 2], tiles[k, 3] + 1):
                 for tx in range(tiles[k, 0], tiles[k, 1] + 1):
-                    t = ty * n_tx + tx
-                    tile_list[fill[t]] = s
-                    slot_of_entry[fill[t]] = slot
-                    slot += 1
-                    fill[t] += 1
+                    if _listed(bits[k], i, n_box, pix[k, 0], pix[k, 1], pix[k, 2], pix[k, 3], tx, ty, geo[s], round32):
+                        t = ty * n_tx + tx
+                        tile_list[fill[t]] = s
+                        slot_of_entry[fill[t]] = slot
+                        slot += 1
+                        fill[t] += 1
+                    i += 1
     return tile_start, tile_list, emit_start, slot_of_entry, capacity
 
 

@@ -730,6 +730,112 @@ inline vd lane_sqrt(vd a) {
 #define NO_CONTRACT __attribute__((optimize("fp-contract=off", "no-math-errno")))
 #endif
 
+// ---- The binning's per-tile test (``_kernels.tile_conic``, ``tile_reached``: the same values in
+// the same order, no fused multiply-add, so both backends list alike).
+constexpr double CULL_MARGIN = 1e-3, WELL_POSED = 1e-4;
+
+struct TileConic {
+    double ax0, ax1, ax2, ay0, ay1, ay2, a00, a01, a02, r, cx, cy, s01, s02, s12, inv00, inv11, ex, ey;
+    bool ellipse, well_posed;
+};
+
+NO_CONTRACT inline TileConic tile_conic(const float *row) {
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    TileConic c;
+    c.ax0 = row[GEO_AX], c.ax1 = row[GEO_AX + 1], c.ax2 = row[GEO_AX + 2];
+    c.ay0 = row[GEO_AY], c.ay1 = row[GEO_AY + 1], c.ay2 = row[GEO_AY + 2];
+    c.a00 = row[GEO_A0], c.a01 = row[GEO_A0 + 1], c.a02 = row[GEO_A0 + 2];
+    c.cx = row[GEO_CX], c.cy = row[GEO_CY];
+    c.r = (double)row[GEO_RHO_MAX] * (1.0 + CULL_MARGIN);
+    const double s00 = c.ax0 * c.ax0 + c.ax1 * c.ax1 - c.r * (c.ax2 * c.ax2);
+    c.s01 = c.ax0 * c.ay0 + c.ax1 * c.ay1 - c.r * (c.ax2 * c.ay2);
+    const double s11 = c.ay0 * c.ay0 + c.ay1 * c.ay1 - c.r * (c.ay2 * c.ay2);
+    c.s02 = c.ax0 * c.a00 + c.ax1 * c.a01 - c.r * (c.ax2 * c.a02);
+    c.s12 = c.ay0 * c.a00 + c.ay1 * c.a01 - c.r * (c.ay2 * c.a02);
+    const double det2 = s00 * s11 - c.s01 * c.s01;
+    c.ellipse = s00 > 0.0 && det2 > 0.0;
+    c.ex = c.ey = c.inv00 = c.inv11 = 0.0;
+    if (c.ellipse) {
+        c.ex = (c.s01 * c.s12 - s11 * c.s02) / det2;
+        c.ey = (c.s01 * c.s02 - s00 * c.s12) / det2;
+        c.inv00 = 1.0 / s00;
+        c.inv11 = 1.0 / s11;
+    }
+    c.well_posed = det2 > WELL_POSED * (s00 * s11);
+    return c;
+}
+
+NO_CONTRACT inline double conic_value(const TileConic &c, double x, double y) {
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const double q0 = x * c.ax0 + y * c.ay0 + c.a00, q1 = x * c.ax1 + y * c.ay1 + c.a01;
+    const double q2 = x * c.ax2 + y * c.ay2 + c.a02;
+    return q0 * q0 + q1 * q1 - c.r * (q2 * q2);
+}
+
+// numba's min and max of two floats (NO_CONTRACT as their callers: GCC inlines no function
+// whose optimisation options differ from its caller's)
+NO_CONTRACT inline double py_min(double a, double b) { return b < a ? b : a; }
+NO_CONTRACT inline double py_max(double a, double b) { return b > a ? b : a; }
+NO_CONTRACT inline double clamp_to(double v, double lo, double hi) { return py_min(py_max(v, lo), hi); }
+
+NO_CONTRACT inline bool tile_reached(const TileConic &c, double xa, double xb, double ya, double yb) {
+#if defined(__clang__)
+#pragma clang fp contract(off)
+#endif
+    const double dx = py_max(py_max(xa - c.cx, 0.0), c.cx - xb), dy = py_max(py_max(ya - c.cy, 0.0), c.cy - yb);
+    if (2.0 * (dx * dx + dy * dy) <= c.r || !c.ellipse) return true;
+    if (xa <= c.ex && c.ex <= xb && ya <= c.ey && c.ey <= yb) return true;
+    const bool every = !c.well_posed;
+    if ((every || c.ey < ya) && conic_value(c, clamp_to(-(c.s01 * ya + c.s02) * c.inv00, xa, xb), ya) <= 0.0)
+        return true;
+    if ((every || c.ey > yb) && conic_value(c, clamp_to(-(c.s01 * yb + c.s02) * c.inv00, xa, xb), yb) <= 0.0)
+        return true;
+    if ((every || c.ex < xa) && conic_value(c, xa, clamp_to(-(c.s01 * xa + c.s12) * c.inv11, ya, yb)) <= 0.0)
+        return true;
+    if ((every || c.ex > xb) && conic_value(c, xb, clamp_to(-(c.s01 * xb + c.s12) * c.inv11, ya, yb)) <= 0.0)
+        return true;
+    return false;
+}
+
+// The pixel rows [ya, yb] of box ``b`` in tile row ``ty``, its columns [xa, xb] in tile column ``tx``.
+NO_CONTRACT inline void box_in_tile(const int64_t *b, int64_t tx, int64_t ty, int64_t &xa, int64_t &xb, int64_t &ya, int64_t &yb) {
+    xa = b[0] > tx * TILE ? b[0] : tx * TILE, xb = b[1] < tx * TILE + TILE - 1 ? b[1] : tx * TILE + TILE - 1;
+    ya = b[2] > ty * TILE ? b[2] : ty * TILE, yb = b[3] < ty * TILE + TILE - 1 ? b[3] : ty * TILE + TILE - 1;
+}
+
+// The tiles of box ``b`` (row-major) that the surfel of ``row`` reaches, as bits, for a box of at
+// most 64 tiles (one tile: reached, untested); all bits set for a larger box (its binning
+// tests each tile itself).
+NO_CONTRACT inline uint64_t reach_bits(const int64_t *b, const float *row) {
+    const int64_t tx0 = b[0] >> TILE_SHIFT, tx1 = b[1] >> TILE_SHIFT, ty0 = b[2] >> TILE_SHIFT, ty1 = b[3] >> TILE_SHIFT;
+    if (tx0 == tx1 && ty0 == ty1) return 1;
+    if ((tx1 - tx0 + 1) * (ty1 - ty0 + 1) > 64) return ~(uint64_t)0;
+    const TileConic conic = tile_conic(row);
+    uint64_t bits = 0;
+    int64_t i = 0;
+    for (int64_t ty = ty0; ty <= ty1; ty++)
+        for (int64_t tx = tx0; tx <= tx1; tx++, i++) {
+            int64_t xa, xb, ya, yb;
+            box_in_tile(b, tx, ty, xa, xb, ya, yb);
+            if (tile_reached(conic, (double)xa, (double)xb, (double)ya, (double)yb)) bits |= (uint64_t)1 << i;
+        }
+    return bits;
+}
+
+// Whether tile ``i`` of box ``b`` (its (tx, ty)) is reached: from ``bits`` where the box has at
+// most 64 tiles, else tested.
+NO_CONTRACT inline bool tile_of_box_reached(uint64_t bits, int64_t n_box_tiles, int64_t i, const int64_t *b,
+                                            const TileConic *conic, int64_t tx, int64_t ty) {
+    if (n_box_tiles <= 64) return bits >> i & 1;
+    int64_t xa, xb, ya, yb;
+    box_in_tile(b, tx, ty, xa, xb, ya, yb);
+    return tile_reached(*conic, (double)xa, (double)xb, (double)ya, (double)yb);
+}
+
 }  // namespace
 
 extern "C" {
@@ -775,13 +881,14 @@ void simd_backward(const int64_t *tile_start, const int64_t *slot_of_entry, cons
 }
 
 // ``_kernels.preprocess`` on surfels [begin, end), with each surfel's float32 row of the kernels'
-// table, its ``n_feat`` features included (the caller runs one call per chunk of surfels, one
-// per thread at a time).
+// table, its ``n_feat`` features included, and the tiles of its box it reaches (``reach_bits``:
+// the binning's test, run here in surfel order; in depth order its rows were cache misses).
+// The caller runs one call per chunk of surfels, one per thread at a time.
 NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const float *scales, const float *opac,
                                  const double *K, const double *Rwc, const double *twc, int64_t width,
                                  int64_t height, double near, double far, float *Tm, float *nrm, double *depth,
                                  int64_t *box, int32_t *radii, float *centre, float *surf, int64_t surf_cols,
-                                 const float *feat, int64_t n_feat, int64_t begin, int64_t end) {
+                                 const float *feat, int64_t n_feat, uint64_t *reached, int64_t begin, int64_t end) {
 #if defined(__clang__)
 #pragma clang fp contract(off)
 #endif
@@ -912,6 +1019,7 @@ NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const f
                 }
             }
             for (int k = 0; k < 4; k++) box[i * 4 + k] = b[k], row[E_BOX + k] = (float)b[k];
+            reached[i] = radii[i] > 0 ? reach_bits(b, row) : 0;
         }
     }
 }
@@ -922,42 +1030,60 @@ NO_CONTRACT void simd_preprocess(const float *means, const float *quats, const f
 constexpr int BIN_AHEAD = 16;
 
 // ``_kernels.bin_tiles``' count over entries [begin, end) of the depth order (``n`` long): each
-// entry's tile range, its surfel's tile count, and per tile the entries and their box pixels
-// (added to ``counts`` and ``pixels``, one row per part of the order).
-void simd_bin_count(const int64_t *front_to_back, const int64_t *box, int64_t begin, int64_t end, int64_t n,
-                    int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
+// entry's tile range, its surfel's count of tiles reached (``reached``: the set-up's bits), and
+// per tile the entries and their box pixels (added to ``counts`` and ``pixels``, one row per
+// part of the order).
+NO_CONTRACT void simd_bin_count(const int64_t *front_to_back, const int64_t *box, const uint64_t *reached,
+                                const float *surf, int64_t surf_cols, int64_t begin, int64_t end, int64_t n,
+                                int64_t n_tx, int32_t *tiles, int64_t *per_surfel, int64_t *counts, int64_t *pixels) {
     for (int64_t k = begin; k < end; k++) {
-        if (k + BIN_AHEAD < n) __builtin_prefetch(box + front_to_back[k + BIN_AHEAD] * 4);
+        if (k + BIN_AHEAD < n) {
+            __builtin_prefetch(box + front_to_back[k + BIN_AHEAD] * 4);
+            __builtin_prefetch(reached + front_to_back[k + BIN_AHEAD]);
+        }
         const int64_t s = front_to_back[k];
         const int64_t *b = box + s * 4;
         const int64_t tx0 = b[0] >> TILE_SHIFT, tx1 = b[1] >> TILE_SHIFT, ty0 = b[2] >> TILE_SHIFT,
                       ty1 = b[3] >> TILE_SHIFT;
         int32_t *tk = tiles + k * 4;
         tk[0] = (int32_t)tx0, tk[1] = (int32_t)tx1, tk[2] = (int32_t)ty0, tk[3] = (int32_t)ty1;
-        per_surfel[s + 1] = (tx1 - tx0 + 1) * (ty1 - ty0 + 1);
+        const int64_t n_box_tiles = (tx1 - tx0 + 1) * (ty1 - ty0 + 1);
+        TileConic conic;
+        if (n_box_tiles > 64) conic = tile_conic(surf + s * surf_cols);
+        int64_t kept = 0, i = 0;
         for (int64_t ty = ty0; ty <= ty1; ty++) {
-            const int64_t y0 = ty * TILE;
-            const int64_t rows = (b[3] < y0 + TILE - 1 ? b[3] : y0 + TILE - 1) - (b[2] > y0 ? b[2] : y0) + 1;
-            for (int64_t tx = tx0; tx <= tx1; tx++) {
+            const int64_t rows = (b[3] < ty * TILE + TILE - 1 ? b[3] : ty * TILE + TILE - 1) - (b[2] > ty * TILE ? b[2] : ty * TILE) + 1;
+            for (int64_t tx = tx0; tx <= tx1; tx++, i++) {
+                if (!tile_of_box_reached(reached[s], n_box_tiles, i, b, &conic, tx, ty)) continue;
                 const int64_t x0 = tx * TILE, t = ty * n_tx + tx;
                 counts[t] += 1;
                 pixels[t] += rows * ((b[1] < x0 + TILE - 1 ? b[1] : x0 + TILE - 1) - (b[0] > x0 ? b[0] : x0) + 1);
+                kept++;
             }
         }
+        per_surfel[s + 1] = kept;
     }
 }
 
 // Its fill: each entry's surfel and gradient slot at its tile's ``cursor`` (advanced).
-void simd_bin_fill(const int64_t *front_to_back, const int32_t *tiles, const int64_t *emit_start, int64_t begin,
-                   int64_t end, int64_t n, int64_t n_tx, int64_t *cursor, int32_t *tile_list,
-                   int64_t *slot_of_entry) {
+NO_CONTRACT void simd_bin_fill(const int64_t *front_to_back, const int64_t *box, const uint64_t *reached,
+                               const float *surf, int64_t surf_cols, const int32_t *tiles, const int64_t *emit_start,
+                               int64_t begin, int64_t end, int64_t n, int64_t n_tx, int64_t *cursor,
+                               int32_t *tile_list, int64_t *slot_of_entry) {
     for (int64_t k = begin; k < end; k++) {
-        if (k + BIN_AHEAD < n) __builtin_prefetch(emit_start + front_to_back[k + BIN_AHEAD]);
+        if (k + BIN_AHEAD < n) {
+            __builtin_prefetch(emit_start + front_to_back[k + BIN_AHEAD]);
+            __builtin_prefetch(reached + front_to_back[k + BIN_AHEAD]);
+        }
         const int64_t s = front_to_back[k];
         const int32_t *tk = tiles + k * 4;
-        int64_t slot = emit_start[s];
+        const int64_t n_box_tiles = (int64_t)(tk[1] - tk[0] + 1) * (tk[3] - tk[2] + 1);
+        TileConic conic;
+        if (n_box_tiles > 64) conic = tile_conic(surf + s * surf_cols);
+        int64_t slot = emit_start[s], i = 0;
         for (int64_t ty = tk[2]; ty <= tk[3]; ty++)
-            for (int64_t tx = tk[0]; tx <= tk[1]; tx++) {
+            for (int64_t tx = tk[0]; tx <= tk[1]; tx++, i++) {
+                if (!tile_of_box_reached(reached[s], n_box_tiles, i, box + s * 4, &conic, tx, ty)) continue;
                 const int64_t j = cursor[ty * n_tx + tx]++;
                 tile_list[j] = (int32_t)s;
                 slot_of_entry[j] = slot++;

@@ -158,13 +158,17 @@ def prepare(means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, cam
     box = np.empty((P, 4), np.int64)
     radii = np.empty(P, np.int32)
     centre = np.empty((P, 2), dtype)
+    reached = np.empty(P, np.uint64)
+    # round32: the binning's test on geo as the simd kernels' float32 rows hold it, so both
+    # backends list alike
+    round32 = dtype == np.float32
     K.preprocess(
         _np(means), _np(quats), _np(scales), _np(opacities), Kc, Rwc, twc, camera.width, camera.height,
-        camera.near, camera.far, Tm, nrm, geo, depth, box, radii, centre,
+        camera.near, camera.far, Tm, nrm, geo, depth, box, radii, centre, round32, reached,
     )  # fmt: skip
     n_tx = -(-camera.width // K.TILE)
     n_ty = -(-camera.height // K.TILE)
-    binned = K.bin_tiles(depth_order(depth, radii), box, n_tx, n_ty)
+    binned = K.bin_tiles(depth_order(depth, radii), box, reached, geo, round32, n_tx, n_ty)
     tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = binned
     # Cost of a tile ~ its pixel-surfel pairs plus a per-surfel set-up.
     cost = np.diff(rec_tile_start).astype(np.float64) + _ENTRY_COST * np.diff(tile_start)

@@ -57,9 +57,9 @@ _I = ctypes.c_int64
 _D = ctypes.c_double
 _FORWARD_ARGS = [_P, _P, _I, _P, _P, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 7 + [_P] * 6 + [_P] * 6
 _BACKWARD_ARGS = [_P, _P, _P, _I, _P, _P, _P, _I, _I, _P, _I, _I, _I, _D, _D, _D] + [_P] * 6 + [_P] * 5 + [_P] * 7 + [_P]
-_PREPROCESS_ARGS = [_P] * 7 + [_I, _I, _D, _D] + [_P] * 7 + [_I, _P, _I, _I, _I]
-_BIN_COUNT_ARGS = [_P, _P, _I, _I, _I, _I, _P, _P, _P, _P]
-_BIN_FILL_ARGS = [_P, _P, _P, _I, _I, _I, _I, _P, _P, _P]
+_PREPROCESS_ARGS = [_P] * 7 + [_I, _I, _D, _D] + [_P] * 7 + [_I, _P, _I, _P, _I, _I]
+_BIN_COUNT_ARGS = [_P, _P, _P, _P, _I, _I, _I, _I, _I, _P, _P, _P, _P]
+_BIN_FILL_ARGS = [_P, _P, _P, _P, _I, _P, _P, _I, _I, _I, _I, _P, _P, _P]
 _FUNCTIONS = {"simd_forward": _FORWARD_ARGS, "simd_backward": _BACKWARD_ARGS, "simd_preprocess": _PREPROCESS_ARGS,
               "simd_bin_count": _BIN_COUNT_ARGS, "simd_bin_fill": _BIN_FILL_ARGS}
 
@@ -215,22 +215,25 @@ _BIN_PARTS = 8  # parts of the depth order binned in parallel (any count gives t
 
 @numba.njit(parallel=True, cache=True)
 def preprocess_all(pre, means, quats, scales, opac, K, Rwc, twc, width, height, near, far, Tm, nrm, depth, box, radii,
-                   centre, surf, feat):  # fmt: skip
+                   centre, surf, feat, reached):  # fmt: skip
     """``_kernels.preprocess`` in C++ (float32 surfels), with each surfel's row of ``surf``
     (the compositing kernels' table, its features ``feat`` included) in place of the float64
-    ``geo``."""
+    ``geo``, and ``reached``: the tiles of its box it reaches, as bits (``_kernels.tile_reached``;
+    all set for a box of more than 64 tiles)."""
     P = means.shape[0]
     for c in numba.prange(-(-P // _PREPROCESS_CHUNK)):
         lo = c * _PREPROCESS_CHUNK
         pre(means.ctypes, quats.ctypes, scales.ctypes, opac.ctypes, K.ctypes, Rwc.ctypes, twc.ctypes, width, height,
             near, far, Tm.ctypes, nrm.ctypes, depth.ctypes, box.ctypes, radii.ctypes, centre.ctypes, surf.ctypes,
-            surf.shape[1], feat.ctypes, feat.shape[1], lo, min(P, lo + _PREPROCESS_CHUNK))  # fmt: skip
+            surf.shape[1], feat.ctypes, feat.shape[1], reached.ctypes, lo, min(P, lo + _PREPROCESS_CHUNK))  # fmt: skip
 
 
 @numba.njit(parallel=True, cache=True)
-def bin_tiles(count, fill, front_to_back, box, n_tx, n_ty):
-    """``_kernels.bin_tiles`` (same outputs, bit for bit) with its two passes in C++: the count
-    fetches the boxes, read in depth order at scattered ids, ahead of use."""
+def bin_tiles(count, fill, front_to_back, box, reached, surf, n_tx, n_ty):
+    """``_kernels.bin_tiles`` (same outputs, bit for bit) with its two passes in C++, the tiles
+    each surfel reaches from :func:`preprocess_all`'s ``reached`` (the rows ``surf`` for boxes of
+    more than 64 tiles): they fetch the boxes and bits, read in depth order at scattered ids,
+    ahead of use."""
     P = box.shape[0]
     n_tiles = n_tx * n_ty
     n = front_to_back.shape[0]
@@ -240,8 +243,9 @@ def bin_tiles(count, fill, front_to_back, box, n_tx, n_ty):
     counts = np.zeros((_BIN_PARTS, n_tiles), np.int64)
     pixels = np.zeros((_BIN_PARTS, n_tiles), np.int64)
     for b in numba.prange(_BIN_PARTS):
-        count(front_to_back.ctypes, box.ctypes, min(n, b * part_len), min(n, (b + 1) * part_len), n, n_tx,
-              tiles.ctypes, per_surfel.ctypes, counts[b].ctypes, pixels[b].ctypes)  # fmt: skip
+        count(front_to_back.ctypes, box.ctypes, reached.ctypes, surf.ctypes, surf.shape[1], min(n, b * part_len),
+              min(n, (b + 1) * part_len), n, n_tx, tiles.ctypes, per_surfel.ctypes, counts[b].ctypes,
+              pixels[b].ctypes)  # fmt: skip
     emit_start = np.cumsum(per_surfel)
     tile_start = np.zeros(n_tiles + 1, np.int64)
     capacity = np.zeros(n_tiles + 1, np.int64)
@@ -258,8 +262,9 @@ def bin_tiles(count, fill, front_to_back, box, n_tx, n_ty):
     tile_list = np.empty(tile_start[-1], np.int32)
     slot_of_entry = np.empty(tile_start[-1], np.int64)
     for b in numba.prange(_BIN_PARTS):
-        fill(front_to_back.ctypes, tiles.ctypes, emit_start.ctypes, min(n, b * part_len), min(n, (b + 1) * part_len),
-             n, n_tx, cursor[b].ctypes, tile_list.ctypes, slot_of_entry.ctypes)  # fmt: skip
+        fill(front_to_back.ctypes, box.ctypes, reached.ctypes, surf.ctypes, surf.shape[1], tiles.ctypes, emit_start.ctypes,
+             min(n, b * part_len), min(n, (b + 1) * part_len), n, n_tx, cursor[b].ctypes, tile_list.ctypes,
+             slot_of_entry.ctypes)  # fmt: skip
     return tile_start, tile_list, emit_start, slot_of_entry, capacity
 
 
@@ -370,7 +375,7 @@ def prepare(
     Kc, Rwc, twc = (np.ascontiguousarray(a, np.float64) for a in cpu._camera_arrays(camera))
     Tm, nrm = np.empty((P, 9), np.float32), np.empty((P, 3), np.float32)
     depth, box, radii = np.empty(P, np.float64), np.empty((P, 4), np.int64), np.empty(P, np.int32)
-    centre = np.empty((P, 2), np.float32)
+    centre, reached = np.empty((P, 2), np.float32), np.empty(P, np.uint64)
     # The table from the scratch pool, rows on cache lines; back to the pool with the geometry.
     surf_spec = [((P, SURF_COLS), np.float32)]
     surf_buf = cpu.SCRATCH.take("simd-surf", cpu._carve_bytes(surf_spec))
@@ -379,10 +384,11 @@ def prepare(
     preprocess_all(
         kernels["simd_preprocess"], cpu._np(means), cpu._np(quats), cpu._np(scales), cpu._np(opacities), Kc, Rwc, twc,
         camera.width, camera.height, camera.near, camera.far, Tm, nrm, depth, box, radii, centre, surf,
-        cpu._np(colors),
+        cpu._np(colors), reached,
     )  # fmt: skip
     n_tx, n_ty = -(-camera.width // K.TILE), -(-camera.height // K.TILE)
-    binned = bin_tiles(kernels["simd_bin_count"], kernels["simd_bin_fill"], depth_order(depth, radii), box, n_tx, n_ty)
+    order = depth_order(depth, radii)
+    binned = bin_tiles(kernels["simd_bin_count"], kernels["simd_bin_fill"], order, box, reached, surf, n_tx, n_ty)
     tile_start, tile_list, emit_start, slot_of_entry, rec_tile_start = binned
     cost = np.diff(rec_tile_start).astype(np.float64) + cpu._ENTRY_COST * np.diff(tile_start)
     tile_order = np.argsort(-cost, kind="stable")
