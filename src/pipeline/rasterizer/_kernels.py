@@ -1,7 +1,7 @@
 """numba kernels of the ``cpu`` backend.
 
-Pipeline: ``preprocess`` (per surfel: ray transform, facing normal, support box) ->
-tile binning -> ``gather_entries`` (each list entry's surfel data, in list order) ->
+Pipeline: ``preprocess`` (per surfel: ray transform, facing normal, support box, the tiles
+of its box it reaches) -> tile binning -> ``gather_entries`` (each list entry's surfel data, in list order) ->
 ``forward`` -> ``backward`` -> ``reduce_and_chain`` (per surfel: sum of its pair
 gradients, then the chain rule back to means, quats, scales).
 
@@ -13,8 +13,9 @@ intersection ``q = k x l`` of pixel ``(x, y)`` is affine in the pixel:
 ``rho3`` and ``rho2`` tests is rejected without a division or an ``exp``.
 
 Layout: the image is cut into ``TILE x TILE`` tiles. Each visible surfel is listed in
-every tile its support box touches, the surfels taken front to back by ``(centre depth,
-id)`` (one global sort), so each tile's list comes out in that order. The tiles are dealt to the threads beforehand
+every tile of its support box that its conic or low-pass disc reaches (``tile_reached``),
+the surfels taken front to back by ``(centre depth, id)`` (one global sort), so each tile's
+list comes out in that order. The tiles are dealt to the threads beforehand
 (``schedule_tiles``); one thread renders a tile surfel by surfel, touching only the
 pixels of the surfel's box inside the tile, with the per-pixel state in small local
 arrays.
