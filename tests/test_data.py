@@ -142,7 +142,8 @@ def test_prepare_cli_views_and_init_read_back(tmp_path, capsys):
 
 
 def test_prepare_no_masks_leaves_the_sources_masks_out(tmp_path, capsys):
-    """`--no-masks`: the scene is written as from a capture without masks (docs/inputs.md)."""
+    """`--no-masks --masks none`: the scene is written as from a capture without masks, and
+    none are derived (docs/inputs.md)."""
     import json
 
     from pipeline.cli import main
@@ -150,7 +151,7 @@ def test_prepare_no_masks_leaves_the_sources_masks_out(tmp_path, capsys):
     src = _scan_in_size(tmp_path, 80, 60)
     out = tmp_path / "prepared"
     assert main(["prepare", "--src", str(src), "--out", str(out), "--views", "0", "1", "--width", "40",
-                 "--no-masks"]) == 0
+                 "--no-masks", "--masks", "none"]) == 0
     assert "no masks" in capsys.readouterr().out
     assert dtu.load_scene(out, view_ids=None).masks is None and not (out / "mask").exists()
     assert json.loads((out / "scene.json").read_text())["masks_ignored"] is True

@@ -18,6 +18,7 @@ LAYERS = [
     {"data"},
     {"init", "priors"},
     {"optimize"},
+    {"labelling"},
     {"meshing"},
     {"masks"},
     {"evaluation"},

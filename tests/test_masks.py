@@ -17,13 +17,14 @@ import pytest
 import scipy.ndimage
 
 from pipeline import geometry
+from pipeline import labelling as L
 from pipeline import masks as M
 from pipeline.config.init import InitConfig
 from pipeline.data import dtu
 from pipeline.data.scene import Scene
 from pipeline.init import mvs
 from pipeline.init.io import stacked_depths_mm
-from pipeline.meshing.region import Region
+from pipeline.labelling import Region
 from pipeline.synth import Renderer, build_scene, shapes
 from pipeline.synth.render import snap
 from pipeline.synth.scenes import SynthScene
@@ -103,6 +104,48 @@ def mvs_like(views: Views, seed: int = 0) -> np.ndarray:
     return np.stack(out)
 
 
+# Measured on scan24's plane-sweep MVS at 800x600 (views 23/24/33, pipeline.labelling):
+# two views' depths differ by 0.057% (robust sigma), so each carries ~0.04%; 0.7% of the
+# depth points lie where another view looks through them. scan24's white table has no depth
+# at all; the real scan of a block on a table had 15.6% of the points in its sphere over two
+# voxels (1.39 mm) below the table (docs: captures without masks): with the table about half
+# of the points, as here, a spread of 2.4 mm along its normal.
+REAL_NOISE_REL = 0.0004
+REAL_WRONG_SHARE = 0.007
+REAL_TABLE_SIGMA_MM = 2.4
+
+
+def real_like(views: Views, seed: int = 0, background_share: float = 0.3) -> np.ndarray:
+    """The exact depth (everywhere, not only in the unit sphere) degraded as real MVS
+    degrades it, with the noise measured on scan24 (REAL_NOISE_REL, REAL_WRONG_SHARE) and
+    on the real scan's table (REAL_TABLE_SIGMA_MM along its normal), mvs_like's holes and
+    fattened edges,
+    and ``background_share`` of the pixels beyond the table's far edge (no surface: a dark
+    backdrop) matched at random depths where their rays cross the search sphere."""
+    rng = np.random.default_rng(seed)
+    S = views.norm_to_world
+    out = []
+    for d, parts, K, T in zip(views.full_depths, views.parts, views.K, views.world_to_cam):
+        d = d.copy()
+        near = -scipy.ndimage.maximum_filter(-np.where(d > 0, d, np.inf), size=3)
+        fat = (d > 0) & (near < 0.97 * d) & (rng.random(d.shape) < 0.5)
+        d[fat] = near[fat]
+        d[d > 0] *= 1.0 + REAL_NOISE_REL * rng.standard_normal(int((d > 0).sum()))
+        on_table = (parts == len(views.scene.parts)) & (d > 0)
+        cos = np.abs(M.pixel_ray_dirs(K, T, d.shape)[1] @ views.scene.up_world)  # height per unit of depth
+        d[on_table] += REAL_TABLE_SIGMA_MM * rng.standard_normal(int(on_table.sum())) / cos[on_table]
+        wrong = (d > 0) & (rng.random(d.shape) < REAL_WRONG_SHARE)
+        d[wrong] = rng.uniform(d[d > 0].min(), d[d > 0].max(), int(wrong.sum()))
+        region = Region(S[:3, 3], L.SEARCH_GROWTH * S[0, 0])
+        t0, t1 = M.ray_intervals(region, *M.pixel_ray_dirs(K, T, d.shape), parts="sphere")
+        backdrop = (d == 0) & (t1 > t0) & (rng.random(d.shape) < background_share)
+        d[backdrop] = rng.uniform(t0[backdrop], t1[backdrop])
+        field = scipy.ndimage.gaussian_filter(rng.random(d.shape), 3.0)
+        d[field < np.quantile(field, 0.35)] = 0.0
+        out.append(d)
+    return np.stack(out)
+
+
 def project_mvs(views: Views) -> np.ndarray:
     """``(3, H, W)`` depth (mm, 0: none) of gcgs init's default backend, plane-sweep MVS, on
     the rendered views quantised to 8 bits as a prepared scene's PNGs are."""
@@ -112,9 +155,9 @@ def project_mvs(views: Views) -> np.ndarray:
     return stacked_depths_mm(mvs.run(scene, InitConfig.default()).depths)
 
 
-def region_of(views: Views, depths: np.ndarray) -> tuple[Region, dict]:
+def labels_of(views: Views, depths: np.ndarray) -> L.SceneLabels:
     scale = float(views.norm_to_world[0, 0])
-    return M.find_region(depths, views.K, views.world_to_cam, views.norm_to_world, VOXEL_NORM * scale, PLANE_SHARE,
+    return L.label_scene(depths, views.K, views.world_to_cam, views.norm_to_world, VOXEL_NORM * scale,
                          PLANE_MARGIN_NORM * scale)
 
 
@@ -145,16 +188,16 @@ def mvs_depths(scenes) -> dict[str, np.ndarray]:
 def test_derived_masks_match_the_objects(scenes, mvs_depths, name, depth):
     views = scenes[name]
     depths = {"exact": views.depths, "mvs_like": mvs_like(views), "mvs": mvs_depths[name]}[depth]
-    region, facts = region_of(views, depths)
-    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, region, VIEWS)
+    labels = labels_of(views, depths)
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels, VIEWS)
     assert [r.view for r in out] == VIEWS
     scores = [iou(r.mask, t) for r, t in zip(out, views.truth)]
-    assert min(scores) >= MIN_IOU, (scores, facts)
+    assert min(scores) >= MIN_IOU, (scores, labels.facts)
     for r in out:
         assert r.method == "grabcut" and not r.warnings
         assert r.mask.shape == (H, W) and r.mask.dtype == bool
         assert r.coverage == pytest.approx(r.mask.mean())
-        assert set(r.stages) == {"seed", "grabcut", "consistent"}
+        assert set(r.stages) == {"projection", "refined", "cleaned"}
 
 
 # Captures bring 3 to 10 views (issue 58): wider rings of DTU's cameras around the object.
@@ -162,11 +205,11 @@ def test_derived_masks_match_the_objects(scenes, mvs_depths, name, depth):
 def test_derived_masks_match_with_more_views(cams, views):
     rendered = render(build_scene("synth_relief", 0, cams), cams, views=views)
     depths = mvs_like(rendered)
-    region, facts = region_of(rendered, depths)
-    out = M.derive_masks(rendered.images, rendered.K, rendered.world_to_cam, depths, region, views)
+    labels = labels_of(rendered, depths)
+    out = M.derive_masks(rendered.images, rendered.K, rendered.world_to_cam, depths, labels, views)
     assert [r.view for r in out] == views
     scores = [iou(r.mask, t) for r, t in zip(out, rendered.truth)]
-    assert min(scores) >= MIN_IOU, (scores, facts)
+    assert min(scores) >= MIN_IOU, (scores, labels.facts)
     assert all(r.method == "grabcut" and not r.warnings for r in out)
 
 
@@ -207,11 +250,11 @@ def test_a_dark_object_on_a_stand_without_a_table_is_masked_alone(cams):
     images[truth] *= 0.25
     views = dataclasses.replace(views, images=images, truth=truth)
     depths = project_mvs(views)
-    region, facts = region_of(views, depths)
-    assert region.plane is None, facts
-    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, region, VIEWS)
+    labels = labels_of(views, depths)
+    assert labels.plane is None, labels.facts
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels, VIEWS)
     scores = [iou(r.mask, t) for r, t in zip(out, views.truth)]
-    assert min(scores) >= MIN_IOU, (scores, facts)
+    assert min(scores) >= MIN_IOU, (scores, labels.facts)
     stand = views.parts == obj + 1
     assert all((r.mask & stand).sum() <= 0.1 * stand.sum() for r in out)
     assert all(r.method == "grabcut" and not r.warnings for r in out)
@@ -225,29 +268,57 @@ def test_a_textureless_part_without_depth_stays_in_the_mask(scenes, mvs_depths):
     views, depths = scenes["block"], mvs_depths["block"]
     box = views.parts == BOX_PART
     assert (depths[box] > 0).mean() < 0.5  # the premise: MVS leaves most of the box without depth
-    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, region_of(views, depths)[0], VIEWS)
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels_of(views, depths), VIEWS)
     recall = [float((r.mask & b).sum() / b.sum()) for r, b in zip(out, box)]
     assert min(recall) >= 0.9, recall
 
 
-def test_the_table_under_a_block_is_the_lowest_plane(scenes):
-    """The block's top carries more depth points than the table; the region's plane is still
-    the table, so the block is kept as part of the object."""
-    views = scenes["block"]
-    region, facts = region_of(views, views.depths)
-    shares = [p["share"] for p in facts["planes"]]
-    assert shares[0] == max(shares) and facts["table_plane"] != 0  # the largest plane is not the table
-    up = views.scene.up_world
-    assert abs(region.plane[:3] @ up) > 0.999
+def test_a_block_on_a_table_with_real_noise_and_a_backdrop_is_masked_whole(cams):
+    """Docs' first class of captures without masks as a real scan shows it: a block with
+    tools on a table whose far edge is in view, a dark backdrop beyond it that MVS matches at
+    random depths (so that more than the first derivation's 10% of the points lie below the
+    table: it rejected the table then), depth noise measured on scan24. The table is still
+    the support (its band from its own residuals) and every view's mask is the block and
+    its tools."""
+    views = render(block_scene(cams), cams, table_half_mm=300.0)
+    depths = real_like(views)
+    labels = labels_of(views, depths)
+    facts = labels.facts
+    # The premise: more than 10% of the points in the sphere lie over two voxels below the
+    # table (the first derivation's test, which then rejected the table).
+    S = views.norm_to_world
+    pts = np.concatenate([geometry.backproject_depth(k, t, d)[d > 0] for d, k, t in zip(depths, views.K, views.world_to_cam)])
+    pts = pts[np.linalg.norm(pts - S[:3, 3], axis=1) <= S[0, 0]]
+    true_plane = np.append(views.scene.up_world, -views.scene.up_world @ views.scene.local_to_world[:3, 3])
+    assert (pts @ true_plane[:3] + true_plane[3] < -2.0 * VOXEL_NORM * S[0, 0]).mean() > 0.1
+    assert abs(labels.plane[:3] @ views.scene.up_world) > 0.999
     origin = views.scene.local_to_world[:3, 3]
-    assert abs(region.plane[:3] @ origin + region.plane[3]) < 1.0  # mm
+    assert abs(labels.plane[:3] @ origin + labels.plane[3]) < 1.0  # mm: the table, not the block's top
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels, VIEWS)
+    scores = [iou(r.mask, t) for r, t in zip(out, views.truth)]
+    assert min(scores) >= MIN_IOU, (scores, {k: v for k, v in facts.items() if k != "planes"})
+    assert all(r.method == "grabcut" and not r.warnings for r in out)
+
+
+def test_the_table_under_a_block_is_the_lowest_plane(scenes):
+    """The block's top carries more depth points than the table; the support is still the
+    table, so the block is kept as part of the object."""
+    views = scenes["block"]
+    labels = labels_of(views, views.depths)
+    facts = labels.facts
+    shares = [p["share"] for p in facts["planes"]]
+    assert shares[0] == max(shares) and facts["support_plane"] != 0  # the largest plane is not the table
+    up = views.scene.up_world
+    assert abs(labels.plane[:3] @ up) > 0.999
+    origin = views.scene.local_to_world[:3, 3]
+    assert abs(labels.plane[:3] @ origin + labels.plane[3]) < 1.0  # mm
     block_top = origin + 50.0 * up
-    assert region.contains(block_top[None] + 10.0 * up)[0]
+    assert labels.region.contains(block_top[None] + 10.0 * up)[0]
 
 
 def test_ray_intervals_agree_with_region_contains(scenes):
     views = scenes["synth_relief"]
-    region, _ = region_of(views, views.depths)
+    region = labels_of(views, views.depths).region
     assert region.plane is not None and region.footprint is not None
     origin, dirs = M.pixel_ray_dirs(views.K[0], views.world_to_cam[0], (H, W))
     dirs = dirs[::7, ::7].reshape(-1, 3)
@@ -263,8 +334,8 @@ def test_ray_intervals_agree_with_region_contains(scenes):
 def test_deterministic(scenes):
     views = scenes["synth_thin"]
     depths = mvs_like(views, seed=1)
-    a = M.derive_masks(views.images, views.K, views.world_to_cam, depths, region_of(views, depths)[0], VIEWS)
-    b = M.derive_masks(views.images, views.K, views.world_to_cam, depths, region_of(views, depths)[0], VIEWS)
+    a = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels_of(views, depths), VIEWS)
+    b = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels_of(views, depths), VIEWS)
     for x, y in zip(a, b):
         assert np.array_equal(x.mask, y.mask)
         for k in x.stages:
@@ -273,47 +344,52 @@ def test_deterministic(scenes):
         assert strip(x.facts) == strip(y.facts)
 
 
-def test_a_region_that_swallows_the_views_falls_back_to_the_sphere(scenes):
-    """A sphere around everything and no table: the table is one depth-continuous piece with
-    the object and comes out foreground. Views 23 and 24 see table everywhere (a mask over
-    90%: the sphere's silhouette instead, one warning naming the view); view 33 sees past the
-    table's far edge (87%: kept, no warning)."""
-    views = scenes["synth_relief"]
-    huge = Region(centre_mm=views.norm_to_world[:3, 3].copy(), radius_mm=1e5)
-    out = M.derive_masks(views.images, views.K, views.world_to_cam, views.full_depths, huge, VIEWS)
-    for r, v in zip(out[:2], VIEWS):
-        assert r.method == "fallback_sphere" and r.facts["coverage_consistent"] > 0.9
-        assert len(r.warnings) == 1 and r.warnings[0].startswith(f"view {v}:") and "sphere alone" in r.warnings[0]
-        assert r.mask.all()  # the silhouette of a sphere around the cameras
-    assert out[2].method == "grabcut" and not out[2].warnings and 0.8 < out[2].coverage < 0.9
-
-
 def test_depth_on_the_table_only_falls_back_with_a_warning(scenes, cams):
-    """Depth maps that see only the table (the object missed by the init): no foreground
-    seed, a mask under 1%, the sphere's silhouette instead, one warning per view."""
+    """Depth maps that see only the table (the object missed by the init): the labelling
+    finds no object, every view gets the region's silhouette with one warning naming it."""
     views = scenes["synth_thin"]
     empty = SynthScene("empty", 0, 0, [shapes.Part(np.zeros((3, 3)), np.array([[0, 1, 2]]), "noise", False)],
                        views.scene.local_to_world, views.scene.light_dir_world)
     table = render(empty, cams).depths
-    region, _ = region_of(views, views.depths)
-    out = M.derive_masks(views.images, views.K, views.world_to_cam, table, region, VIEWS)
+    labels = labels_of(views, table)
+    assert labels.plane is not None and labels.facts["object_points"] == 0
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, table, labels, VIEWS)
     for r, v in zip(out, VIEWS):
-        assert r.method == "fallback_sphere" and r.facts["coverage_consistent"] < 0.01
-        assert len(r.warnings) == 1 and r.warnings[0].startswith(f"view {v}:") and "sphere alone" in r.warnings[0]
-        assert np.array_equal(r.mask, M.silhouette(region, views.K[VIEWS.index(v)], views.world_to_cam[VIEWS.index(v)],
-                                                   (H, W), parts="sphere"))
-        assert r.coverage > 0.1  # the scene's sphere fills these views: 100%
+        assert r.method == "fallback_region"
+        assert len(r.warnings) == 1 and r.warnings[0].startswith(f"view {v}:") and "no object" in r.warnings[0]
+        assert np.array_equal(r.mask, M.silhouette(labels.region, views.K[VIEWS.index(v)],
+                                                   views.world_to_cam[VIEWS.index(v)], (H, W), parts="no_footprint"))
+        assert r.coverage > 0.1
+
+
+def test_a_mask_that_loses_the_object_fails_the_self_check(scenes):
+    """The self-check on its own: a mask without the object's upper half keeps too few of the
+    points two views agree on; a mask of the whole image is too large for the projection."""
+    views = scenes["synth_relief"]
+    labels = labels_of(views, views.depths)
+    tol = L.MIN_REL_TOL
+    pts, pv = labels.object_points(views.depths, views.K, views.world_to_cam)
+    agreed = pts[M.agreed_points(pts, pv, views.depths, views.K, views.world_to_cam, tol)]
+    truth = views.truth[0]
+    ok, facts = M.self_check(truth, truth, views.depths[0], views.K[0], views.world_to_cam[0], agreed, tol)
+    assert ok is None and facts["agreed_points_kept"] > 0.97, facts
+    ys = np.nonzero(truth)[0]
+    half = truth & (np.arange(H)[:, None] > np.median(ys))
+    why, _ = M.self_check(half, truth, views.depths[0], views.K[0], views.world_to_cam[0], agreed, tol)
+    assert why is not None and "two views agree on" in why
+    why, _ = M.self_check(np.ones_like(truth), truth, views.depths[0], views.K[0], views.world_to_cam[0], agreed, tol)
+    assert why is not None and "area" in why
 
 
 def test_inputs_are_checked(scenes):
     views = scenes["synth_thin"]
-    region, _ = region_of(views, views.depths)
+    labels = labels_of(views, views.depths)
     with pytest.raises(ValueError, match="same N views"):
-        M.derive_masks(views.images[:2], views.K, views.world_to_cam, views.depths, region)
+        M.derive_masks(views.images[:2], views.K, views.world_to_cam, views.depths, labels)
     bad = views.depths.copy()
     bad[0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="0 = no depth"):
-        M.derive_masks(views.images, views.K, views.world_to_cam, bad, region)
+        M.derive_masks(views.images, views.K, views.world_to_cam, bad, labels)
 
 
 def floating_blob(views: Views, depths: np.ndarray, region: Region, view: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -334,68 +410,31 @@ def floating_blob(views: Views, depths: np.ndarray, region: Region, view: int = 
     return out, blob
 
 
-@pytest.mark.parametrize("test", ["free_space", "silhouette"])
-def test_cross_view_check_drops_what_the_other_views_see_through(scenes, test):
+def test_a_wrong_match_the_other_views_see_through_is_no_object(scenes):
+    """Free-space carving in the 3D labelling: a patch floating above the table that the
+    other views look through is background, and stays out of every mask."""
     views = scenes["synth_relief"]
-    region, _ = region_of(views, views.depths)
+    region = labels_of(views, views.depths).region
     depths, blob = floating_blob(views, views.depths, region)
-    assert blob.sum() > 50 and region.contains(geometry.backproject_depth(views.K[0], views.world_to_cam[0],
-                                                                          depths[0])[blob]).mean() > 0.9
-    labels = [M.seed_labels(d, k, t, region, 2, 8.0)[0] for d, k, t in zip(depths, views.K, views.world_to_cam)]
-    masks = [views.truth[0] | blob, views.truth[1], views.truth[2]]
-    out = M.cross_view_check(masks, labels, depths, views.K, views.world_to_cam, region, 2, test)
-    assert not (out[0] & blob).any()
-    for m, t in zip(out, views.truth):
-        assert np.array_equal(m, t)
+    assert blob.sum() > 50
+    labels = labels_of(views, depths)
+    assert (labels.pixel_labels[0][blob] == L.OBJECT).mean() < 0.05
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, depths, labels, VIEWS)
+    assert (out[0].mask & blob).sum() <= 0.05 * blob.sum()
 
 
-def test_free_space_keeps_a_part_the_other_masks_miss(scenes):
-    """The rods of synth_thin cut from two views' masks: the silhouette test then cuts them
-    from the third, the free-space test (the other views' depth, not their masks) keeps them."""
-    views = scenes["synth_thin"]
-    region, _ = region_of(views, views.depths)
-    labels = [M.seed_labels(d, k, t, region, 2, 8.0)[0] for d, k, t in zip(views.depths, views.K, views.world_to_cam)]
-    rods = [scipy.ndimage.binary_opening(t, iterations=4) for t in views.truth]  # the box and fins, no rods
-    masks = [views.truth[0], rods[1], rods[2]]
-    thin = views.truth[0] & ~rods[0]
-    assert thin.sum() > 100
-    kept = M.cross_view_check(masks, labels, views.depths, views.K, views.world_to_cam, region, 2, "free_space")[0]
-    cut = M.cross_view_check(masks, labels, views.depths, views.K, views.world_to_cam, region, 2, "silhouette")[0]
-    assert np.array_equal(kept, views.truth[0])
-    assert (cut & thin).sum() < 0.5 * thin.sum()
-
-
-def test_seed_labels_without_depth(scenes):
-    """No depth at all: a pixel whose ray misses the sphere above the table is sure
-    background, every other pixel probable background; nothing is foreground. (The scene's
-    sphere fills the views; one of half its radius does not.)"""
+def test_the_sphere_grows_to_hold_an_object_it_cuts(scenes):
+    """An object reaching beyond the unit sphere (a sphere of 0.6 its radius here): the
+    region grows to hold every object point, so the masks do not cut it."""
     views = scenes["synth_relief"]
-    found, _ = region_of(views, views.depths)
-    region = Region(found.centre_mm, 0.5 * found.radius_mm, found.plane, found.margin_mm)
-    labels, facts = M.seed_labels(np.zeros((H, W)), views.K[0], views.world_to_cam[0], region, 2, 8.0)
-    crosses = M.silhouette(region, views.K[0], views.world_to_cam[0], (H, W), parts="no_footprint")
-    assert 0.2 < crosses.mean() < 0.9  # the sphere above the table: part of the view
-    assert np.array_equal(labels == M.GC_BGD, ~crosses)
-    assert np.array_equal(labels == M.GC_PR_BGD, crosses)
-    assert facts["depth_pixels"] == 0 and facts["sure_fg"] == 0
-
-
-def test_seed_labels_take_pixels_without_depth_among_the_objects_for_it(scenes):
-    """A 3 px slot without depth cut into the object's depth from its edge (a textureless
-    part MVS matched around only) is probable foreground once the foreground is closed over
-    its width; as probable background it taught GrabCut's background model the part's colour."""
-    views = scenes["synth_relief"]
-    region, _ = region_of(views, views.depths)
-    ys, xs = np.nonzero(views.truth[0])
-    row = int(np.median(ys))
-    edge = int(xs[ys == row].max())
-    slot = np.zeros((H, W), bool)
-    slot[row - 1:row + 2, edge - 15:edge + 1] = True
-    depth = views.depths[0].copy()
-    depth[slot] = 0.0
-    for closing_px, expected in ((0, M.GC_PR_BGD), (2, M.GC_PR_FGD)):
-        labels, _ = M.seed_labels(depth, views.K[0], views.world_to_cam[0], region, 2, 8.0, None, closing_px)
-        assert (labels[slot] == expected).mean() > 0.9, closing_px
+    S = views.norm_to_world.copy()
+    S[:3, :3] *= 0.6
+    labels = L.label_scene(views.depths, views.K, views.world_to_cam, S, VOXEL_NORM * S[0, 0], PLANE_MARGIN_NORM * S[0, 0])
+    pts, _ = labels.object_points(views.depths, views.K, views.world_to_cam)
+    assert (np.linalg.norm(pts - S[:3, 3], axis=1) > S[0, 0]).mean() > 0.05  # the premise: the unit sphere cuts it
+    assert labels.region.radius_mm > S[0, 0] and labels.region.contains(pts).all()
+    out = M.derive_masks(views.images, views.K, views.world_to_cam, views.depths, labels, VIEWS)
+    assert min(iou(r.mask, t) for r, t in zip(out, views.truth)) >= MIN_IOU
 
 
 def test_fill_depthless_holes():

@@ -5,6 +5,7 @@ nothing behind. Scene: tests/test_masks.py's object on a block (views 23, 24, 33
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import cv2
@@ -15,7 +16,7 @@ from pipeline import cli
 from pipeline import masks as M
 from pipeline.data import dtu
 from pipeline.init.io import DepthMap, depth_path, load_init_depths, write_depth
-from pipeline.meshing.region import Region
+from pipeline.labelling import Region
 from pipeline.synth import shapes
 from pipeline.synth.scenes import SynthScene
 from test_atomic import tree_digest
@@ -46,7 +47,7 @@ def capture(tmp_path_factory, bundled_scan):
                           world_to_cam=dict(zip(VIEWS, views.world_to_cam)), norm_to_world=views.norm_to_world,
                           masks=dict(zip(VIEWS, views.truth)), meta={"name": "block"})
     prepare = ["prepare", "--src", src, "--views", *VIEWS, "--width", W, "--params", PARAMS]
-    assert cli.main([str(a) for a in prepare + ["--out", root / "scene", "--no-masks"]]) == 0
+    assert cli.main([str(a) for a in prepare + ["--out", root / "scene", "--masks", "none"]]) == 0
     assert cli.main([str(a) for a in prepare + ["--out", root / "given"]]) == 0
     assert cli.main([str(a) for a in ["init", "--scene", root / "scene", "--out-dir", root / "init",
                                       "--params", PARAMS]]) == 0
@@ -109,7 +110,9 @@ def test_an_overlay_per_view_shows_the_mask_over_the_image(capture, derived):
         shown = cv2.imread(str(derived["overlays"] / f"{v:03d}.png"))[..., ::-1].astype(float)
         assert shown.shape == (H, W, 3)
         plain = M.to_uint8(image)[..., ::-1].astype(float)
-        inside = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)  # off the contour
+        # Off the contour, which also runs along the image's border where the mask reaches it.
+        inside = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8), borderType=cv2.BORDER_CONSTANT,
+                           borderValue=0).astype(bool)
         outside = ~cv2.dilate(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         assert np.array_equal(shown[inside], plain[inside])  # the object as it is
         assert shown[outside].mean() < 0.5 * plain[outside].mean()  # the rest darkened
@@ -121,8 +124,8 @@ def test_an_overlay_per_view_shows_the_mask_over_the_image(capture, derived):
 
 def test_a_fallback_is_one_warning_per_view_on_stderr(capture, capsys, tmp_path):
     """Depth maps that see only the table (the init missed the object): every view falls
-    back to the sphere's silhouette, each named in one warning line; the scene is written
-    (exit 0) with those masks."""
+    back to the region's silhouette (the sphere cut by the table), each named in one warning
+    line with the failed test; the scene is written (exit 0) with those masks."""
     views = capture["views"]
     empty = SynthScene("empty", 0, 0, [shapes.Part(np.zeros((3, 3)), np.array([[0, 1, 2]]), "noise", False)],
                        views.scene.local_to_world, views.scene.light_dir_world)
@@ -138,13 +141,16 @@ def test_a_fallback_is_one_warning_per_view_on_stderr(capture, capsys, tmp_path)
     warnings = [ln for ln in _lines(err) if ln.startswith("gcgs: warning: ")]
     assert len(warnings) == len(VIEWS)
     for v, line in zip(VIEWS, warnings):
-        assert f"view {v}:" in line and "sphere alone" in line
+        assert f"view {v}:" in line and "no object points" in line and "region's silhouette" in line
     record = json.loads((tmp_path / "out" / "scene.json").read_text())["derived_masks"]
-    assert {r["method"] for r in record["views"].values()} == {"fallback_sphere"}
+    assert {r["method"] for r in record["views"].values()} == {"fallback_region"}
     out = dtu.load_scene(tmp_path / "out", view_ids=None)
-    sphere = Region(out.norm_to_world[:3, 3], out.norm_scale_mm)
+    region = Region(np.array(record["region"]["sphere_centre_mm"]), record["region"]["sphere_radius_mm"],
+                    np.array(record["region"]["support_plane"]), record["region"]["plane_margin_mm"])
     for mask, K, T in zip(out.masks, out.K, out.world_to_cam):
-        assert np.array_equal(mask, M.silhouette(sphere, K, T, (H, W), parts="sphere"))
+        expected = M.silhouette(region, K, T, (H, W), parts="no_footprint")
+        assert (mask != expected).mean() < 1e-3  # the record's rounding of the plane
+        assert mask.any() and not mask.all()  # cut by the table
 
 
 @pytest.mark.parametrize("case", ["given_masks", "already_derived", "missing_init", "output_inside_input",
@@ -178,9 +184,10 @@ def test_refusals_are_one_line_and_leave_nothing_behind(capture, derived, capsys
 @pytest.mark.parametrize("layout", ["colmap_text", "colmap_binary", "nerfstudio"])
 def test_captures_of_every_layout_get_derived_masks_and_surfels_only_inside(capture, tmp_path, layout):
     """The same capture without masks as a COLMAP (text, binary) or nerfstudio folder, as a
-    user brings it: prepare (every image an input view), init, ``gcgs masks``, a short
-    training on the derived scene. The masks match the object (IoU >= 0.9) and no surfel
-    ends outside the region (the sphere and the derived masks' visual hull)."""
+    user brings it, through the usual stages with no second pass: prepare (every image an
+    input view; it derives the masks), init, priors, a short training. The masks match the
+    object (IoU >= 0.9) and no surfel ends outside the region (the sphere and the derived
+    masks' visual hull)."""
     from pipeline.config.optimize import OptimizeConfig
     from pipeline.data import export
     from pipeline.optimize.region import region_from_views
@@ -194,10 +201,9 @@ def test_captures_of_every_layout_get_derived_masks_and_surfels_only_inside(capt
         export.write_nerfstudio(src, *parts)
     else:
         export.write_colmap(src, *parts, binary=layout == "colmap_binary")
-    scene, init, priors, out, surfels = (tmp_path / d for d in ("scene", "init", "priors", "derived", "surfels"))
-    for argv in (["prepare", "--src", src, "--out", scene, "--width", W],  # no --views: every image
-                 ["init", "--scene", scene, "--out-dir", init],
-                 ["masks", "--scene", scene, "--init-dir", init, "--out-scene", out],
+    out, init, priors, surfels = (tmp_path / d for d in ("scene", "init", "priors", "surfels"))
+    for argv in (["prepare", "--src", src, "--out", out, "--width", W],  # no --views: every image
+                 ["init", "--scene", out, "--out-dir", init],
                  ["priors", "--scene", out, "--init-dir", init, "--out-dir", priors],
                  ["optimize", "--scene", out, "--init-dir", init, "--priors-dir", priors, "--out-dir", surfels,
                   "--iterations", 120, "--no-progress"]):
@@ -212,3 +218,38 @@ def test_captures_of_every_layout_get_derived_masks_and_surfels_only_inside(capt
     region = region_from_views(derived, [np.asarray(m, bool) for m in derived.masks], cfg)
     params = read_surfel_ply(surfels / "surfels.ply", derived.norm_to_world)
     assert params.num >= 32 and bool(region.contains(params.means).all())
+
+
+def test_masks_without_an_init_folder_run_the_mvs_themselves(capture, derived, tmp_path):
+    """``gcgs masks`` without ``--init-dir`` runs the init's MVS in memory: the same masks as
+    from the init folder the same settings wrote."""
+    out = tmp_path / "derived"
+    assert cli.main(["masks", "--scene", str(capture["scene"]), "--out-scene", str(out), "--params", PARAMS]) == 0
+    a, b = dtu.load_scene(out, view_ids=None), dtu.load_scene(derived["out"], view_ids=None)
+    assert np.array_equal(a.masks, b.masks)
+    assert json.loads((out / "scene.json").read_text())["derived_masks"]["init_dir"] is None
+
+
+def test_prepare_derives_the_masks_of_a_capture_without_them(capture, tmp_path, capsys):
+    """No second pass: ``gcgs prepare --no-masks`` (the capture as if it had none) writes a
+    scene with derived masks, marked as such, that match the object; ``--masks none`` keeps
+    none; ``--masks capture`` on a capture without masks is one line naming it."""
+    src = capture["root"] / "src"
+    prepare = ["prepare", "--src", src, "--views", *VIEWS, "--width", W, "--params", PARAMS]
+    rc, err = _gcgs(capsys, *prepare, "--out", tmp_path / "derived", "--no-masks")
+    assert rc == 0, err
+    scene = dtu.load_scene(tmp_path / "derived", view_ids=None)
+    meta = json.loads((tmp_path / "derived" / "scene.json").read_text())
+    assert meta["masks"] == "derived" and meta["derived_masks"]["scene"] == str(src)
+    ious = [float((m & t).sum() / (m | t).sum()) for m, t in zip(scene.masks > 0.5, capture["views"].truth)]
+    assert min(ious) >= MIN_IOU, ious
+    assert _gcgs(capsys, *prepare, "--out", tmp_path / "none", "--no-masks", "--masks", "none")[0] == 0
+    assert dtu.load_scene(tmp_path / "none", view_ids=None).masks is None
+    bare = tmp_path / "bare"
+    shutil.copytree(tmp_path / "none", bare)
+    (bare / "scene.json").unlink()
+    rc, err = _gcgs(capsys, "prepare", "--src", bare, "--out", tmp_path / "refused", "--masks", "capture",
+                    "--params", PARAMS)
+    lines = _lines(err)
+    assert rc != 0 and len(lines) == 1 and "has no masks" in lines[0] and str(bare) in lines[0], err
+    assert not (tmp_path / "refused").exists()

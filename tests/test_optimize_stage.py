@@ -88,3 +88,35 @@ def test_ctrl_c_is_one_line_naming_the_checkpoint_and_the_rerun_resumes(stage_in
     assert json.loads((root / "ctrl_c_timing.json").read_text())["resumed_from"] == 4
     assert _optimize(root, priors, "uninterrupted") == 0
     assert _digest(root / "ctrl_c") == _digest(root / "uninterrupted")
+
+
+def test_sigterm_keeps_the_checkpoint_and_names_it_as_ctrl_c_does(stage_inputs, tmp_path):
+    """SIGTERM (SLURM, ``docker stop``, ``timeout``) in the middle of a training: exit 130,
+    one line naming the checkpoint and how to resume, the checkpoint kept, no output."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, priors = stage_inputs
+    params = yaml.safe_load((root / "params.yaml").read_text())
+    params["optimize"].update(iterations=100000, checkpoint_every=2)
+    (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
+    ckpt = tmp_path / "run.pt"
+    cmd = [sys.executable, "-m", "pipeline.cli", "optimize", "--scene", str(root / "scene"), "--init-dir",
+           str(root / "init"), "--priors-dir", str(priors), "--out-dir", str(tmp_path / "out"), "--checkpoint",
+           str(ckpt), "--metrics", str(tmp_path / "timing.json"), "--live-dir", str(tmp_path / "live"),
+           "--no-progress", "--params", str(tmp_path / "params.yaml")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            env={**os.environ, "GCGS_THREADS": "1"})
+    deadline = time.monotonic() + 300
+    while not ckpt.is_file() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    assert ckpt.is_file(), proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=120)
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert proc.returncode == 130, err
+    assert len(lines) == 1 and f"the checkpoint {ckpt}" in lines[0] and "rerun the same command" in lines[0], err
+    assert ckpt.is_file() and not (tmp_path / "out").exists()

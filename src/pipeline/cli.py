@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import signal
 import sys
+import threading
 
 from pipeline.errors import InputError, Interrupted
 from pipeline.heap import keep_freed_memory
@@ -64,6 +66,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
     module = importlib.import_module(COMMANDS[args.command][0])
+    # Signal handlers belong to the main thread (a sweep may call main from others).
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminate_as_interrupt) if main_thread else None
     try:
         if args.command not in NO_THREADS:
             configure_threads()
@@ -81,6 +86,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"gcgs {args.command}: interrupted; nothing was written (outputs appear only when complete)",
               file=sys.stderr)
         return 130
+    finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _terminate_as_interrupt(signum, frame) -> None:
+    """SIGTERM (what SLURM, ``docker stop`` and ``timeout`` send) ends a command as Ctrl-C
+    does: the training keeps its checkpoint and names it, nothing half-written is left."""
+    raise KeyboardInterrupt
 
 
 if __name__ == "__main__":

@@ -24,11 +24,11 @@ def run_backend(name: str, scene, cfg):
 
 def match_summary(info: dict) -> list[str]:
     """Lines for the console: per-view matched and consistent fractions of the mask
-    pixels (depth backends that report them) and every warning in ``info``."""
+    pixels (depth backends that report them); the warnings in ``info`` go to stderr apart
+    (the stage prints them with :func:`pipeline.errors.print_warning`)."""
     lines = []
     if "matched_fraction" in info:
         views = info.get("views") or range(len(info["matched_fraction"]))
         pairs = (f"{v}: {m:.0%}/{c:.0%}" for v, m, c in zip(views, info["matched_fraction"], info["consistent_fraction"]))
         lines.append("  matched/consistent fraction of mask pixels per view: " + ", ".join(pairs))
-    lines += [f"  WARNING: {w}" for w in info.get("warnings", [])]
     return lines

@@ -11,6 +11,7 @@ import json
 from pipeline import atomic
 from pipeline.config.init import InitConfig
 from pipeline.config.params import load_params, section
+from pipeline.errors import print_warning
 from pipeline.init.backends import match_summary
 from pipeline.measure import measure
 from pipeline.runs.init import run_init
@@ -33,6 +34,8 @@ def run(args: argparse.Namespace) -> int:
         _, info = run_init(args.scene, args.out_dir, cfg)
     print(f"init {cfg.backend}: {info['num_points']} points in {usage.wall_s:.2f} s "
           f"(peak RSS {usage.peak_rss_mb} MB) -> {args.out_dir}", *match_summary(info), sep="\n")
+    for warning in info.get("warnings", []):
+        print_warning(f"{args.scene}: {warning}")
     if args.metrics:  # timings live here, not in the output (same inputs, same bytes)
         atomic.write_text(args.metrics, json.dumps({"backend": cfg.backend, **usage.as_dict()}, indent=2) + "\n")
     return 0
