@@ -24,7 +24,7 @@ from pipeline.data import dtu
 from pipeline.data.scene import Scene
 from pipeline.init import mvs
 from pipeline.init.io import stacked_depths_mm
-from pipeline.labelling import Region
+from pipeline.meshing.region import Region
 from pipeline.synth import Renderer, build_scene, shapes
 from pipeline.synth.render import snap
 from pipeline.synth.scenes import SynthScene

@@ -16,7 +16,7 @@ from pipeline import cli
 from pipeline import masks as M
 from pipeline.data import dtu
 from pipeline.init.io import DepthMap, depth_path, load_init_depths, write_depth
-from pipeline.labelling import Region
+from pipeline.meshing.region import Region
 from pipeline.synth import shapes
 from pipeline.synth.scenes import SynthScene
 from test_atomic import tree_digest

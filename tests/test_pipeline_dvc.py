@@ -41,8 +41,8 @@ def tiny_repo(tmp_path_factory) -> Path:
     params["ablation"]["variants"]["no_priors"] = {"init": "mvs", "loss": {"lambda_gcf": 0.0, "lambda_nor": 0.0}}
     params["ablation"]["run"] = ["baseline_2dgs", "no_priors"]
     # Two scenes, one without ground truth, so that a change to one shows what reruns.
-    params["scenes"] = {"synth_relief": {"src": "data/synth/synth_relief", "gt": "data/synth/synth_relief/gt", "masks": "auto"},
-                        "scan24": {"src": "data/raw/dtu/scan24", "gt": None, "masks": "auto"}}
+    params["scenes"] = {"synth_relief": {"src": "data/synth/synth_relief", "gt": "data/synth/synth_relief/gt"},
+                        "scan24": {"src": "data/raw/dtu/scan24", "gt": None}}
     (root / "params.yaml").write_text(yaml.safe_dump(params, sort_keys=False))
     subprocess.run(["git", "init", "-q"], cwd=root, check=True)
     _dvc(root, "init", "-q")

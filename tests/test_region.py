@@ -1,7 +1,6 @@
-"""The bounding region for depth fused without masks (pipeline.meshing.region, from
-pipeline.labelling): a sphere in a table seen by the scan24 cameras, ray-cast exactly; the
-table is found and cut, the object kept, and nothing changes where masks already cut the
-depth."""
+"""The bounding region for depth fused without masks (pipeline.meshing.region): a sphere in
+a table seen by the scan24 cameras, ray-cast exactly; the table is found and
+cut, the object kept, and nothing changes where masks already cut the depth."""
 from __future__ import annotations
 
 import numpy as np
@@ -10,7 +9,6 @@ import pytest
 from init_scene import make_scene, ray_cast
 from pipeline import geometry
 from pipeline.config.mesh import MeshConfig
-from pipeline import labelling as L
 from pipeline.errors import ConfigError
 from pipeline.meshing import region as bounding, tsdf
 
@@ -21,17 +19,14 @@ def mesh_config(**changes) -> MeshConfig:
     return MeshConfig.default(voxel_norm=0.004, init_depth_rel_tol=0.0, fill_holes_norm=0.0, **changes)
 
 
-def depth_points_mm(depths_mm, K, world_to_cam) -> np.ndarray:
-    return np.concatenate([geometry.backproject_depth(k, t, d)[d > 0] for d, k, t in zip(depths_mm, K, world_to_cam)])
-
-
 def _table_scene(width=160, height=120):
     """Depth maps (mm) of a sphere sunk past its equator into an unbounded plane (a cap:
     its base, where it meets the plane, is in view of the cameras above), and (plane,
     sphere)."""
     scene, _ = make_scene(width, height)
     c, r = scene.norm_to_world[:3, 3], scene.norm_scale_mm
-    up = L.up_direction(scene.world_to_cam)  # a level table
+    up = np.mean([geometry.camera_center(T) for T in scene.world_to_cam], 0) - c
+    up /= np.linalg.norm(up)
     radius = 0.3 * r
     centre = c
     plane = np.append(up, -up @ (c + 0.3 * radius * up))
@@ -66,7 +61,7 @@ def test_ransac_recovers_a_noisy_plane_among_outliers():
     on = rng.uniform(-100, 100, (3000, 1)) * u + rng.uniform(-100, 100, (3000, 1)) * v + 5.0 * n
     on += rng.normal(0, 0.1, (3000, 1)) * n
     off = rng.uniform(-100, 100, (2000, 3))
-    plane, inliers = L.fit_plane_ransac(np.concatenate([on, off]), inlier_mm=0.5)
+    plane, inliers = bounding.fit_plane_ransac(np.concatenate([on, off]), inlier_mm=0.5)
     sign = np.sign(plane[:3] @ n)
     assert np.allclose(sign * plane[:3], n, atol=2e-3)
     assert sign * plane[3] == pytest.approx(-5.0, abs=0.05)
@@ -76,13 +71,12 @@ def test_ransac_recovers_a_noisy_plane_among_outliers():
 def test_table_is_found_above_which_the_cameras_are(table):
     scene, depths, plane, _ = table
     voxel, _ = mesh_config().sizes_mm(scene.norm_scale_mm)
-    labels = L.label_scene(depths, scene.K, scene.world_to_cam, scene.norm_to_world, voxel, 2.0)
-    region, facts = labels.region, labels.facts
+    region, facts = bounding.region_for_depths(depths, scene.K, scene.world_to_cam, scene.norm_to_world, voxel,
+                                               0.15, 2.0)
     assert region.plane is not None, facts
     assert np.allclose(region.plane[:3], plane[:3], atol=1e-3)
     assert region.plane[3] == pytest.approx(plane[3], abs=0.1)
-    assert facts["planes"][facts["support_plane"]]["cameras_above"]
-    assert labels.support_sigma_mm < 0.01 * voxel  # exact depth: the band is the resolution's
+    assert facts["cameras_above"]
 
 
 def test_cut_keeps_the_object_and_drops_the_table_like_a_per_pixel_reference(table):
@@ -91,8 +85,7 @@ def test_cut_keeps_the_object_and_drops_the_table_like_a_per_pixel_reference(tab
     cut, region, facts = bounding.cut_to_region(depths, scene.K, scene.world_to_cam, scene.norm_to_world, cfg,
                                                 masked=False)
     assert region is not None and facts["region"]["depth_pixels_cut"] > 0
-    margin = region.margin_mm  # the support's measured band, at least the configured margin
-    assert margin >= cfg.region_plane_margin_norm * scene.norm_scale_mm
+    margin = cfg.region_plane_margin_norm * scene.norm_scale_mm
     # Reference: one pixel at a time.
     for i, (K, T) in enumerate(zip(scene.K, scene.world_to_cam)):
         inv = np.linalg.inv(T)
@@ -103,11 +96,11 @@ def test_cut_keeps_the_object_and_drops_the_table_like_a_per_pixel_reference(tab
             assert (cut[i, v, u] > 0) == keep
     # What stays is the whole sphere above the margin (its base fixes the footprint); the
     # table is gone.
-    assert region.footprint is not None and facts["region"]["object_points"] > 100
-    pts = depth_points_mm(cut, scene.K, scene.world_to_cam)
+    assert region.footprint is not None and facts["region"]["footprint_points"] > 100
+    pts = bounding.depth_points_mm(cut, scene.K, scene.world_to_cam)
     assert np.abs(np.linalg.norm(pts - centre, axis=1) - radius).max() < 1e-6 * radius + 1e-6
     assert ((pts @ plane[:3] + plane[3]) > margin).all()
-    everything = depth_points_mm(depths, scene.K, scene.world_to_cam)
+    everything = bounding.depth_points_mm(depths, scene.K, scene.world_to_cam)
     on_sphere = np.abs(np.linalg.norm(everything - centre, axis=1) - radius) < 1e-6 * radius + 1e-6
     assert len(pts) == (on_sphere & (everything @ plane[:3] + plane[3] > margin)).sum()
 
@@ -153,37 +146,20 @@ def test_masked_depth_is_left_alone_unless_asked(table):
     assert region is not None and (on > 0).sum() < (depths > 0).sum()
 
 
-def test_no_plane_without_a_table():
+def test_no_plane_without_a_table_and_none_between_the_cameras():
     scene, depths = make_scene(160, 120)
     voxel, _ = mesh_config().sizes_mm(scene.norm_scale_mm)
-    labels = L.label_scene(depths, scene.K, scene.world_to_cam, scene.norm_to_world, voxel, 2.0)
-    assert labels.plane is None and not any(p["candidate"] for p in labels.facts["planes"])
-
-
-def test_a_tilted_plane_is_no_support(table):
-    """The same scene with the table tilted 50 degrees about a level axis (a roof, a wall):
-    it is found as a plane but not taken as the support."""
-    scene, _, plane, (centre, radius) = table
-    up = plane[:3]
-    axis = np.cross(up, L.plane_axes(up)[0])
-    tilt = np.radians(50.0)
-    n = np.cos(tilt) * up + np.sin(tilt) * np.cross(axis, up)
-    tilted = np.append(n, -n @ (centre - 0.5 * radius * up))
-    depths = []
-    for K, T in zip(scene.K, scene.world_to_cam):
-        dirs = geometry.pixel_rays(K, shape=(120, 160)) @ T[:3, :3]
-        c = geometry.camera_center(T)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            z = -(c @ tilted[:3] + tilted[3]) / (dirs @ tilted[:3])
-        depths.append(np.where(np.isfinite(z) & (z > 0), z, 0.0))
-    voxel, _ = mesh_config().sizes_mm(scene.norm_scale_mm)
-    labels = L.label_scene(np.stack(depths), scene.K, scene.world_to_cam, scene.norm_to_world, voxel, 2.0)
-    assert labels.facts["planes"] and labels.facts["planes"][0]["tilt_deg"] == pytest.approx(50.0, abs=1.0)
-    assert labels.plane is None
+    region, facts = bounding.region_for_depths(depths, scene.K, scene.world_to_cam, scene.norm_to_world, voxel,
+                                               0.15, 2.0)
+    assert region.plane is None and facts["plane_share"] < 0.15
+    # A plane with cameras on both of its sides is no table.
+    pts = np.random.default_rng(0).uniform(-50, 50, (500, 3)) * [1, 1, 0]
+    plane, facts = bounding.support_plane(pts, np.array([[0, 0, 100.0], [0, 0, -100.0]]), 1.0, 0.15)
+    assert plane is None and not facts["cameras_above"]
 
 
 def test_bad_region_settings_are_refused():
     with pytest.raises(ConfigError, match="mesh.region"):
         MeshConfig.default(region="sphere")
-    with pytest.raises(ConfigError, match="region_plane_margin_norm"):
-        MeshConfig.default(region_plane_margin_norm=-1.0)
+    with pytest.raises(ConfigError, match="region_plane_share"):
+        MeshConfig.default(region_plane_share=0.0)

@@ -99,8 +99,8 @@ def _reports(root: Path) -> dict:
     (root / "renders/scan24_heldout.png").write_bytes(b"png")
     (root / "train/scan24/plots/metrics/train").mkdir(parents=True)
     (root / "train/scan24/plots/metrics/train/total.tsv").write_text("step\ttotal\n0\t1.0\n")
-    return {"synth_a": {"src": "data/synth/synth_a", "gt": "data/synth/synth_a/gt", "masks": "auto"},
-            "scan24": {"src": "data/raw/dtu/scan24", "gt": None, "masks": "auto"}}
+    return {"synth_a": {"src": "data/synth/synth_a", "gt": "data/synth/synth_a/gt"},
+            "scan24": {"src": "data/raw/dtu/scan24", "gt": None}}
 
 
 def test_index_shows_what_exists_with_its_source(tmp_path):

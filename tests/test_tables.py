@@ -53,8 +53,8 @@ def reports(tmp_path):
         (metrics / f"{name}.json").write_text(json.dumps(_metrics(ours)))
         (baseline / f"{name}.json").write_text(json.dumps(_baseline(theirs)))
     (metrics / "scan24.json").write_text(json.dumps(_metrics(heldout=(0.9, 0.7, 16.5, 0.85))))
-    scenes = {"scan24": {"src": "x", "gt": None, "masks": "auto"}, "synth_a": {"src": "a", "gt": "a/gt", "masks": "auto"},
-              "synth_b": {"src": "b", "gt": "b/gt", "masks": "auto"}, "scan37": {"src": "s", "gt": "dtu", "masks": "auto"}}
+    scenes = {"scan24": {"src": "x", "gt": None}, "synth_a": {"src": "a", "gt": "a/gt"},
+              "synth_b": {"src": "b", "gt": "b/gt"}, "scan37": {"src": "s", "gt": "dtu"}}
     return scenes, metrics, baseline, values
 
 
@@ -225,7 +225,7 @@ def test_dtu_scan_in_params_fills_its_column(tmp_path, bundled_scan, monkeypatch
     src, gt_root = _fake_dtu(synth, tmp_path / "DTU", 105)
     params = yaml.safe_load((REPO / "params.yaml").read_text())
     params["data"].update(width=160, height=120)
-    params["scenes"] = {"scan105": {"src": str(src), "gt": str(gt_root), "masks": "auto"}}
+    params["scenes"] = {"scan105": {"src": str(src), "gt": str(gt_root)}}
     (tmp_path / "params.yaml").write_text(yaml.safe_dump(params))
     monkeypatch.chdir(tmp_path)
     assert main(["prepare", "--src", str(src), "--out", "scenes/scan105", "--name", "scan105"]) == 0

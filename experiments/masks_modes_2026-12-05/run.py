@@ -4,7 +4,8 @@ Each scene (a key of params ``scenes``: the synthetic suite and scan24) is prepa
 same stages as a user would (``gcgs`` commands, ``conf/`` defaults, the ``fast`` preset):
 
 * ``given``: ``gcgs prepare`` with the scene's masks (what the DVC pipeline trains on);
-* ``none``: ``gcgs prepare --no-masks``, then every stage on it;
+* ``none``: ``gcgs prepare --masks none`` (``--no-masks`` before 2026-12-08, when prepare
+  began to derive masks itself), then every stage on it;
 * ``derived``: the ``none`` scene and its init, ``gcgs masks`` (its overlays side by side in
   ``reports/renders/masks/SCENE.png``), then ``init`` again and every stage on the new scene.
 
@@ -71,7 +72,7 @@ def prepare_mode(scene: str, mode: str, work: Path) -> None:
         overlay_strip(d / "overlays", REPO / "reports" / "renders" / "masks" / f"{scene}.png")
     else:
         gcgs("prepare", "--src", str(src), "--out", str(d / "scene"), "--name", scene,
-             *(["--no-masks"] if mode == "none" else []), log=log)
+             *(["--masks", "none"] if mode == "none" else []), log=log)
     gcgs("init", "--scene", str(d / "scene"), "--out-dir", str(d / "init"), "--metrics", str(d / "init.json"), log=log)
     gcgs("priors", "--scene", str(d / "scene"), "--init-dir", str(d / "init"), "--out-dir", str(d / "priors"), log=log)
 
@@ -106,7 +107,9 @@ def run_cell(scene: str, mode: str, seed: int, work: Path) -> dict:
              "--out-dir", str(c / "mesh"), *p, log=log)
         # Scored against the given scene in every mode: the same images and cameras, and the true
         # masks, which the DTU protocol culls the mesh with (a scene without masks has none).
-        gcgs("score", scene, "--scene", str(work / scene / "given" / "scene"), "--surfels-dir", str(c / "surfels"), "--mesh-dir",
+        given = work / scene / "given" / "scene"
+        given = given if given.is_dir() else REPO / "data" / "scenes" / scene  # the DVC pipeline's, when not run here
+        gcgs("score", scene, "--scene", str(given), "--surfels-dir", str(c / "surfels"), "--mesh-dir",
              str(c / "mesh"), "--train-timing", str(c / "train.json"), "--out", str(c / "metrics.json"), *p, log=log)
     m = json.loads((c / "metrics.json").read_text())
     t = json.loads((c / "train.json").read_text())

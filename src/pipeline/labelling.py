@@ -1,9 +1,10 @@
 """Object, support and background: one decision in 3D for a capture without masks.
 
-The one home of "where does the object end": ``gcgs masks`` projects this labelling into
-every input view (:mod:`pipeline.masks`), and the mesh stage cuts depth fused without masks
-to the same region (:mod:`pipeline.meshing.region`), so mask and mesh cannot disagree
-about it.
+``gcgs masks`` and ``gcgs prepare`` project this labelling into every input view
+(:mod:`pipeline.masks`). The mesh stage's region for depth fused without masks
+(:mod:`pipeline.meshing.region`, whose :class:`~pipeline.meshing.region.Region` and plane fit
+this module uses) does not read it yet: that move, which reruns the whole DVC pipeline, is
+issue 77's open part (docs/inputs.md).
 
 :func:`label_scene` labels the depth points of every view at once:
 
@@ -42,6 +43,7 @@ import numpy as np
 import scipy.ndimage
 
 from pipeline import geometry
+from pipeline.meshing.region import Region, fit_plane_ransac, plane_axes
 
 # Spreads: sigma = MAD_TO_SIGMA x median absolute deviation (a normal's).
 MAD_TO_SIGMA = 1.4826
@@ -55,7 +57,6 @@ SPHERE_MARGIN = 0.05
 PLANE_MIN_SHARE = 0.05
 MAX_PLANES = 4
 PLANE_SAMPLE = 100_000  # points the RANSAC looks at (seeded subsample)
-RANSAC_ITERATIONS = 300
 # A support is level: its normal within this angle of the cameras' up (:func:`up_direction`;
 # a roof or a wall is no support).
 MAX_TILT_DEG = 30.0
@@ -85,44 +86,6 @@ UNKNOWN, OBJECT, SUPPORT, BACKGROUND = 0, 1, 2, 3
 
 
 @dataclass
-class Region:
-    """Where the object may be: a sphere, optionally cut by the half-space ``margin_mm``
-    above a support plane and by the footprint's vertical half-spaces."""
-
-    centre_mm: np.ndarray  # (3,) sphere centre, world mm
-    radius_mm: float
-    plane: np.ndarray | None = None  # (4,) n, d (world mm): kept where n . x + d > margin_mm
-    margin_mm: float = 0.0
-    # The footprint: half-planes a . x2 + b <= footprint_margin_mm in the support's 2D frame
-    # (x2 = x @ plane_axes.T), the rows of a 2D convex hull's equations.
-    footprint: np.ndarray | None = None  # (E, 3) rows a_x, a_y, b
-    plane_axes: np.ndarray | None = None  # (2, 3) orthonormal axes in the plane
-    footprint_margin_mm: float = 0.0
-
-    def contains(self, points_mm: np.ndarray) -> np.ndarray:
-        """``(M,)`` bool: inside the sphere and, with a plane, more than ``margin_mm`` above it
-        (and inside the pushed-out footprint when there is one)."""
-        p = np.asarray(points_mm, np.float64)
-        ok = np.linalg.norm(p - self.centre_mm, axis=-1) <= self.radius_mm
-        if self.plane is not None:
-            ok &= p @ self.plane[:3] + self.plane[3] > self.margin_mm
-        if self.footprint is not None:
-            xy = p @ self.plane_axes.T
-            ok &= (xy @ self.footprint[:, :2].T + self.footprint[:, 2]).max(axis=-1) <= self.footprint_margin_mm
-        return ok
-
-    def without_footprint(self) -> Region:
-        return Region(self.centre_mm, self.radius_mm, self.plane, self.margin_mm)
-
-    def facts(self) -> dict:
-        return {"sphere_centre_mm": [round(float(x), 3) for x in self.centre_mm], "sphere_radius_mm": round(self.radius_mm, 3),
-                "support_plane": None if self.plane is None else [round(float(x), 6) for x in self.plane],
-                "plane_margin_mm": round(self.margin_mm, 3),
-                "footprint_edges": 0 if self.footprint is None else len(self.footprint),
-                "footprint_margin_mm": round(self.footprint_margin_mm, 3)}
-
-
-@dataclass
 class SceneLabels:
     """The labelling of every view's depth pixels and the region it implies."""
 
@@ -149,41 +112,6 @@ class SceneLabels:
 
 # ---------------------------------------------------------------------------------------
 # Planes
-
-
-def plane_axes(normal: np.ndarray) -> np.ndarray:
-    """``(2, 3)`` orthonormal axes spanning the plane of unit ``normal``."""
-    a = np.eye(3)[int(np.argmin(np.abs(normal)))]
-    u = np.cross(normal, a)
-    u /= np.linalg.norm(u)
-    return np.stack([u, np.cross(normal, u)])
-
-
-def fit_plane_ransac(points: np.ndarray, inlier_mm: float, iterations: int = RANSAC_ITERATIONS,
-                     seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """The plane with the most points within ``inlier_mm`` (RANSAC over random triples,
-    seeded so the same points give the same plane), refined by least squares on its
-    inliers. Returns ``(plane (4,), inlier mask)``."""
-    p = np.asarray(points, np.float64)
-    if len(p) < 3:
-        raise ValueError(f"a plane needs at least 3 points, got {len(p)}")
-    rng = np.random.default_rng(seed)
-    best, best_count = None, -1
-    extent = float(np.abs(p - p.mean(axis=0)).max()) or 1.0
-    for _ in range(iterations):
-        a, b, c = p[rng.choice(len(p), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm <= 1e-12 * extent * extent:  # collinear, relative to the points' extent (any unit)
-            continue
-        n /= norm
-        count = int((np.abs((p - a) @ n) < inlier_mm).sum())
-        if count > best_count:
-            best, best_count = np.append(n, -n @ a), count
-    if best is None:
-        raise ValueError("every sampled triple of points is collinear: no plane")
-    plane = least_squares_plane(p[np.abs(p @ best[:3] + best[3]) < inlier_mm])
-    return plane, np.abs(p @ plane[:3] + plane[3]) < inlier_mm
 
 
 def least_squares_plane(points: np.ndarray) -> np.ndarray:

@@ -1,9 +1,8 @@
 """Object masks derived per input view for captures without masks (issues 58, 77).
 
 One decision in 3D, projected into every view: :func:`pipeline.labelling.label_scene` labels
-the init's depth points of all views at once as object, support or background (the same
-labelling the mesh stage cuts its depth with), and each view's mask starts from that
-labelling's projection. An image refinement may move the mask's boundary only within a band
+the init's depth points of all views at once as object, support or background, and each
+view's mask starts from that labelling's projection. An image refinement may move the mask's boundary only within a band
 around it, and a self-check compares every mask with the labelling before it is kept.
 
 Steps (:func:`derive_masks`), per view:
@@ -51,7 +50,8 @@ import scipy.ndimage
 
 from pipeline import geometry
 from pipeline import labelling
-from pipeline.labelling import Region, SceneLabels
+from pipeline.labelling import SceneLabels
+from pipeline.meshing.region import Region
 
 GC_BGD, GC_FGD, GC_PR_BGD, GC_PR_FGD = cv2.GC_BGD, cv2.GC_FGD, cv2.GC_PR_BGD, cv2.GC_PR_FGD
 # Brightness normalisation before 8-bit quantisation: this percentile of the image maps to 1

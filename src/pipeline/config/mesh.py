@@ -28,10 +28,11 @@ class MeshConfig(FromConf):
     # Where the init's MVS depth map (two-view confirmed) agrees with the rendered depth to
     # this relative tolerance, that pixel fuses the init's depth instead; 0: off.
     init_depth_rel_tol: float
-    # Bounding region for depth fused without masks (pipeline.labelling, meshing/region.py):
-    # the sphere holding the object and, when the depth shows one, the half-space above the support.
+    # Bounding region for depth fused without masks (meshing/region.py): the unit sphere and,
+    # when the depth shows one, the half-space above the support plane (the table).
     region: str  # auto (when no mask cuts the fused depth) | on | off
-    region_plane_margin_norm: float  # least height above the support that is object (unit-sphere radii)
+    region_plane_share: float  # a plane is the table when at least this share of depth points lie on it
+    region_plane_margin_norm: float  # the region starts this far above the table (unit-sphere radii)
     # Holes whose boundary fits in a sphere of this radius (unit-sphere radii) are closed where
     # the fused depth maps support the new triangles (meshing/holes.py); 0: off.
     fill_holes_norm: float
@@ -39,8 +40,8 @@ class MeshConfig(FromConf):
     def __post_init__(self) -> None:
         if self.region not in ("auto", "on", "off"):
             raise ConfigError(f"mesh.region must be auto, on or off, got {self.region!r}")
-        if not 0 <= self.region_plane_margin_norm < float("inf"):
-            raise ConfigError(f"mesh.region_plane_margin_norm must be finite and >= 0, got {self.region_plane_margin_norm}")
+        if not 0 < self.region_plane_share <= 1 or self.region_plane_margin_norm < 0:
+            raise ConfigError("mesh: region_plane_share must be in (0, 1] and region_plane_margin_norm >= 0")
         if self.depth not in ("median", "expected"):
             raise ConfigError(f"mesh.depth must be median or expected, got {self.depth!r}")
         if not 0 <= self.init_depth_rel_tol < 1:

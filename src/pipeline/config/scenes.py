@@ -1,4 +1,4 @@
-"""params.yaml ``scenes``: each scene's source folder, ground truth and masks."""
+"""params.yaml ``scenes``: each scene's source folder and ground truth."""
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -14,12 +14,7 @@ class SceneEntry:
     besides :class:`~pipeline.config.ablation.VariantConfig`'s (tests/test_config_defaults.py)."""
 
     src: str
-    masks: str  # gcgs prepare --masks: auto | capture | derive | none
     gt: str | None = None
-
-    def __post_init__(self) -> None:
-        if self.masks not in ("auto", "capture", "derive", "none"):
-            raise ConfigError(f"scenes: masks must be auto, capture, derive or none, got {self.masks!r}")
 
 
 def scene_entry(params: dict, name: str) -> SceneEntry:

@@ -33,7 +33,7 @@ import torch.nn.functional as F
 from pipeline import atomic
 from pipeline.config.loss import LossConfig
 from pipeline.config.optimize import OptimizeConfig
-from pipeline.errors import ConfigError, Interrupted, OutputError, print_warning
+from pipeline.errors import ConfigError, Interrupted
 from pipeline.losses import (
     SourceView,
     best_source_ncc,
@@ -180,20 +180,14 @@ class Trainer:
             torch.save(self.state_dict(), tmp)
 
     def try_resume(self, path: Path, log: Callable[[str], None]) -> bool:
-        """Resume from ``path`` when it holds this run's state. A checkpoint of another run
-        (other settings or inputs) is refused, never overwritten or deleted: that run may
-        still resume from it. An unreadable file (not a checkpoint at all) is started over."""
         if not path.is_file():
             return False
         try:
             state = torch.load(path, weights_only=False)
-        except Exception as exc:  # a broken file: start over (it is replaced by this run's)
-            print_warning(f"ignoring unreadable checkpoint {path}: {exc}")
+            self.load_state_dict(state)
+        except Exception as exc:  # a stale or broken checkpoint is not fatal: start over
+            log(f"ignoring checkpoint {path}: {exc}")
             return False
-        if not isinstance(state, dict) or state.get("fingerprint") != self.fingerprint:
-            raise OutputError(f"{path}: a checkpoint of another run (other settings or inputs), kept for that run "
-                              "to resume: delete it to start this run over, or give --checkpoint another file")
-        self.load_state_dict(state)
         log(f"resumed from {path} at iteration {self.it}")
         return True
 

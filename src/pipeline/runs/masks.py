@@ -63,8 +63,8 @@ def derive_scene_masks(scene_dir: str | Path, init_dir: str | Path | None, out_s
     depth maps; ``None``: the init's ``mvs`` backend with ``init_cfg`` runs here, in memory)
     -> ``out_scene``, a gcgs ``scene`` output, and, with ``overlays_dir``, a gcgs
     ``mask-overlays`` output of :func:`pipeline.masks.overlay` per view. The labelling uses
-    the mesh stage's settings (``cfg``: ``voxel_norm``, ``region_plane_margin_norm``), so mask
-    and mesh agree. ``model``: a salient-object ONNX model refining inside the band
+    the mesh stage's settings (``cfg``: ``voxel_norm``, ``region_plane_margin_norm``).
+    ``model``: a salient-object ONNX model refining inside the band
     (:class:`pipeline.masks.SaliencyModel`). Each fallback of a view is one ``warn`` line
     naming the view and the failed test. Every check runs before anything is written, and
     both outputs appear complete or not at all. Returns the ``derived_masks`` record written
