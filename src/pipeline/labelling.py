@@ -90,7 +90,6 @@ class SceneLabels:
     """The labelling of every view's depth pixels and the region it implies."""
 
     region: Region  # where the object may be (meshing and the masks' fallback)
-    unit_sphere: Region  # the capture's unit sphere
     pixel_labels: np.ndarray  # (N, H, W) uint8: UNKNOWN, OBJECT, SUPPORT, BACKGROUND
     noise_rel: float  # measured relative depth noise (sigma), dimensionless
     support_sigma_mm: float  # measured spread of the support plane's residuals (0 without one)
@@ -369,7 +368,7 @@ def label_scene(depths_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, 
     pts_all = world[in_search]
     if len(pts_all) < 3:
         facts["object_points"] = 0
-        return SceneLabels(unit, unit, labels, noise_rel, 0.0, facts)
+        return SceneLabels(unit, labels, noise_rel, 0.0, facts)
     sample = pts_all
     if len(sample) > PLANE_SAMPLE:
         sample = sample[np.random.default_rng(0).choice(len(sample), PLANE_SAMPLE, replace=False)]
@@ -467,4 +466,4 @@ def label_scene(depths_mm: np.ndarray, K: np.ndarray, world_to_cam: np.ndarray, 
         if hull is not None:
             region = Region(unit.centre_mm, radius, plane, margin, hull, axes, FOOTPRINT_MARGIN * R)
     facts["sphere_growth"] = round(radius / R, 4)
-    return SceneLabels(region, unit, labels, noise_rel, sigma, facts)
+    return SceneLabels(region, labels, noise_rel, sigma, facts)
